@@ -1,0 +1,19 @@
+// The one pybind11 module. Each concept binds itself in cpp/bindings/<concept>.cpp.
+#include <pybind11/pybind11.h>
+
+namespace py = pybind11;
+
+void bind_membrane(py::module_& m);
+void bind_solver(py::module_& m);
+void bind_deformation(py::module_& m);
+void bind_sim(py::module_& m);
+void bind_render(py::module_& m);
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "bubble_rt C++ core (private: use the bubble_rt Python API)";
+  bind_membrane(m);
+  bind_solver(m);
+  bind_deformation(m);
+  bind_sim(m);
+  bind_render(m);
+}

@@ -1,0 +1,1 @@
+"""Subcommands of `bubble-rt` (see bubble_rt.cli)."""
