@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Developer build: compiles the extension (and generated protobuf code) in place, so that
+# `PYTHONPATH=python python3 -m pytest tests` runs against this work tree without pip.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+build=build/dev
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release \
+  -Dpybind11_DIR="$(python3 -m pybind11 --cmakedir)" -DPython_EXECUTABLE="$(command -v python3)" >/dev/null
+cmake --build "$build" -j2
+cp "$build"/_core*.so python/bubble_rt/
+if [ -d "$build/proto_gen" ]; then
+  rm -rf python/bubble_rt/proto_gen && cp -r "$build/proto_gen" python/bubble_rt/proto_gen
+fi
