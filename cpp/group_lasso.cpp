@@ -1,0 +1,380 @@
+#include "group_lasso.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <vector>
+
+#include "errors.h"
+
+namespace bubble {
+
+namespace {
+using Clock = std::chrono::steady_clock;
+double ms_since(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+// rho moves on a grid of quarter decades so that factorizations can be cached and reused.
+constexpr double kRhoGridPerDecade = 4.0;
+constexpr int kMaxCachedFactors = 12;
+}  // namespace
+
+void SolverSettings::validate() const {
+  require(std::isfinite(rho) && rho > 0, "rho must be positive");
+  require(std::isfinite(sigma) && sigma >= 0, "sigma must be >= 0");
+  require(alpha > 0 && alpha < 2, "alpha must be in (0, 2)");
+  require(adaptive_rho_tolerance >= 1, "adaptive_rho_tolerance must be >= 1");
+  require(adaptive_rho_interval >= 1, "adaptive_rho_interval must be >= 1");
+  require(eps_abs >= 0 && eps_rel >= 0 && (eps_abs > 0 || eps_rel > 0),
+          "eps_abs and eps_rel must be >= 0 and not both zero");
+  require(max_iter >= 1, "max_iter must be >= 1");
+  require(check_interval >= 1, "check_interval must be >= 1");
+  require(std::isfinite(time_limit) && time_limit >= 0, "time_limit must be >= 0 (0 = none)");
+  require(scaling_iter >= 0, "scaling_iter must be >= 0");
+}
+
+std::string to_string(SolverStatus s) {
+  switch (s) {
+    case SolverStatus::solved:
+      return "solved";
+    case SolverStatus::max_iter_reached:
+      return "max_iter_reached";
+    case SolverStatus::time_limit_reached:
+      return "time_limit_reached";
+    case SolverStatus::non_finite_input:
+      return "non_finite_input";
+  }
+  return "unknown";
+}
+
+GroupLassoSolver::GroupLassoSolver(const SparseMatrixd& K,
+                                   const Eigen::Ref<const RowMatrixX3d>& area_normals,
+                                   const Eigen::Ref<const Eigen::VectorXi>& boundary, double k_f,
+                                   double k_u, const SolverSettings& settings)
+    : settings_(settings) {
+  settings.validate();
+  n_ = static_cast<int>(area_normals.rows());
+  require(n_ >= 1, "area_normals must be N x 3 with N >= 1");
+  require(K.rows() == 3 * n_ && K.cols() == 3 * n_,
+          "K must be 3N x 3N with N = " + std::to_string(n_));
+  require(area_normals.allFinite(), "area_normals contains NaN or inf");
+  is_rim_ = Eigen::VectorXi::Zero(n_);
+  for (Eigen::Index i = 0; i < boundary.size(); ++i) {
+    require(boundary(i) >= 0 && boundary(i) < n_,
+            "boundary index " + std::to_string(boundary(i)) + " out of range");
+    is_rim_(boundary(i)) = 1;
+  }
+  require(is_rim_.sum() >= 1, "boundary must name at least one rim node");
+  nf_ = n_ - is_rim_.sum();
+  require(nf_ >= 1, "mesh has no free (non-rim) node");
+  free_.resize(nf_);
+  Eigen::VectorXi col_of = Eigen::VectorXi::Constant(n_, -1);
+  for (int i = 0, j = 0; i < n_; ++i)
+    if (!is_rim_(i)) {
+      free_(j) = i;
+      col_of(i) = j++;
+    }
+  std::vector<Eigen::Triplet<double>> trip;
+  for (int col = 0; col < K.outerSize(); ++col) {
+    const int node = col / 3;
+    if (is_rim_(node)) continue;
+    const int c = 3 * col_of(node) + col % 3;
+    for (SparseMatrixd::InnerIterator it(K, col); it; ++it) {
+      require(std::isfinite(it.value()), "K contains NaN or inf");
+      trip.emplace_back(static_cast<int>(it.row()), c, it.value());
+    }
+  }
+  A_.resize(3 * n_, 3 * nf_);
+  A_.setFromTriplets(trip.begin(), trip.end());
+  A_.makeCompressed();
+  an_ = area_normals;
+  set_weights(k_f, k_u);
+}
+
+void GroupLassoSolver::set_weights(double k_f, double k_u) {
+  require(std::isfinite(k_f) && k_f > 0, "k_f must be finite and positive");
+  require(std::isfinite(k_u) && k_u > 0, "k_u must be finite and positive");
+  k_f_ = k_f;
+  k_u_ = k_u;
+  c_ = k_u / n_;
+  const double n_rim = n_ - nf_;
+  w_.resize(n_);
+  for (int i = 0; i < n_; ++i) w_(i) = is_rim_(i) ? k_f * n_rim / n_ : k_f;
+  setup();
+}
+
+void GroupLassoSolver::set_settings(const SolverSettings& settings) {
+  settings.validate();
+  const bool rescale =
+      settings.rho != settings_.rho || settings.scaling_iter != settings_.scaling_iter;
+  const bool resigma = settings.sigma != settings_.sigma;
+  settings_ = settings;
+  fresh_ = false;
+  if (rescale || resigma) setup();
+}
+
+void GroupLassoSolver::setup() {
+  const auto t0 = Clock::now();
+  const int m = 3 * n_, nfd = 3 * nf_;
+  // Ruiz equilibration of [[P, A^T], [A, 0]] with one factor per node (keeps the block norms
+  // of the group lasso intact), P = 2 c I.
+  Eigen::VectorXd d = Eigen::VectorXd::Ones(nf_), e = Eigen::VectorXd::Ones(n_);
+  for (int it = 0; it < settings_.scaling_iter; ++it) {
+    Eigen::VectorXd cn(nf_), rn = Eigen::VectorXd::Zero(n_);
+    for (int j = 0; j < nf_; ++j) cn(j) = 2 * c_ * d(j) * d(j);
+    for (int col = 0; col < nfd; ++col)
+      for (SparseMatrixd::InnerIterator a(A_, col); a; ++a) {
+        const double v = std::abs(a.value()) * e(a.row() / 3) * d(col / 3);
+        cn(col / 3) = std::max(cn(col / 3), v);
+        rn(a.row() / 3) = std::max(rn(a.row() / 3), v);
+      }
+    for (int j = 0; j < nf_; ++j) d(j) /= std::sqrt(std::max(cn(j), 1e-300));
+    for (int i = 0; i < n_; ++i)
+      if (rn(i) > 0) e(i) /= std::sqrt(rn(i));
+  }
+  D_.resize(nfd);
+  E_.resize(m);
+  for (int j = 0; j < nfd; ++j) D_(j) = d(j / 3);
+  for (int i = 0; i < m; ++i) E_(i) = e(i / 3);
+  Dinv_ = D_.cwiseInverse();
+  Einv_ = E_.cwiseInverse();
+  Ah_ = E_.asDiagonal() * A_ * D_.asDiagonal();
+  Ah_.makeCompressed();
+  AhT_ = Ah_.transpose();
+  AhT_.makeCompressed();
+  AtA_ = (AhT_ * Ah_).pruned();
+  AtA_.makeCompressed();
+  // Cost scale: the mean of P's diagonal becomes one (OSQP's rule without a linear term).
+  Pd_ = 2 * c_ * D_.cwiseAbs2();
+  s_ = 1.0 / Pd_.mean();
+  Pd_ *= s_;
+  wh_.resize(n_);
+  for (int i = 0; i < n_; ++i) wh_(i) = s_ * w_(i) / e(i);
+  factors_.clear();
+  rho_set_ = false;
+  fresh_ = false;
+  if (have_data_) {
+    RowMatrixX3d U = U_;
+    update(U, dp_);
+  }
+  setup_ms_ = ms_since(t0);
+}
+
+double GroupLassoSolver::rho_of(int idx) const { return std::pow(10.0, idx / kRhoGridPerDecade); }
+
+const Eigen::SimplicialLDLT<SparseMatrixd>& GroupLassoSolver::factor(int idx, int* count) {
+  auto it = factors_.find(idx);
+  if (it != factors_.end()) return *it->second;
+  if (static_cast<int>(factors_.size()) >= kMaxCachedFactors) {
+    // Drop the cached factor farthest from the requested rho.
+    auto far = factors_.begin();
+    if (std::abs(factors_.rbegin()->first - idx) > std::abs(far->first - idx))
+      far = std::prev(factors_.end());
+    factors_.erase(far);
+  }
+  SparseMatrixd M = AtA_ * rho_of(idx);
+  for (int j = 0; j < M.cols(); ++j) M.coeffRef(j, j) += Pd_(j) + settings_.sigma;
+  auto f = std::make_unique<Eigen::SimplicialLDLT<SparseMatrixd>>();
+  f->compute(M);
+  require(f->info() == Eigen::Success, "factorisation of the ADMM system failed");
+  ++*count;
+  return *(factors_[idx] = std::move(f));
+}
+
+void GroupLassoSolver::update(const Eigen::Ref<const RowMatrixX3d>& U, double dp) {
+  require(U.rows() == n_, "U must be N x 3 with N = " + std::to_string(n_) + ", got " +
+                              std::to_string(U.rows()) + " rows");
+  for (Eigen::Index i = 0; i < U.rows(); ++i)
+    require(U.row(i).allFinite(), "U has NaN or inf at node " + std::to_string(i));
+  require(std::isfinite(dp), "dp is NaN or inf");
+  if (fresh_ && dp == dp_ && U_.rows() == U.rows() && U_ == U) return;
+  fresh_ = false;
+  U_ = U;
+  dp_ = dp;
+  Eigen::VectorXd uf(3 * nf_);
+  for (int j = 0; j < nf_; ++j) uf.segment<3>(3 * j) = U_.row(free_(j)).transpose();
+  Eigen::VectorXd b = A_ * uf;
+  b -= dp * Eigen::Map<const Eigen::VectorXd>(an_.data(), an_.size());
+  bh_ = E_.cwiseProduct(b);
+  rim_const_ = 0;
+  for (int i = 0; i < n_; ++i)
+    if (is_rim_(i)) rim_const_ += c_ * U_.row(i).squaredNorm();
+  have_data_ = true;
+}
+
+void GroupLassoSolver::warm_start(const Eigen::Ref<const RowMatrixX3d>& V,
+                                  const Eigen::Ref<const RowMatrixX3d>& dual) {
+  require(V.rows() == n_ && dual.rows() == n_, "warm start arrays must be N x 3");
+  require(V.allFinite() && dual.allFinite(), "warm start arrays contain NaN or inf");
+  V_prev_ = V;
+  dual_prev_ = dual;
+  have_prev_ = true;
+  fresh_ = false;
+}
+
+void GroupLassoSolver::cold_start() {
+  have_prev_ = false;
+  fresh_ = false;
+}
+
+void GroupLassoSolver::prox(const Eigen::VectorXd& v, double rho, Eigen::VectorXd& out) const {
+  // prox of sum_i wh_i ||z_i + bh_i|| / rho: shrink u = v + b blockwise, shift back.
+  for (int i = 0; i < n_; ++i) {
+    const Eigen::Vector3d u = v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const double nu = u.norm(), t = wh_(i) / rho;
+    const double k = nu > t ? 1.0 - t / nu : 0.0;
+    out.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
+  }
+}
+
+SolverResult GroupLassoSolver::solve() {
+  require(have_data_, "solve() called before update(U, dp)");
+  const auto t0 = Clock::now();
+  if (fresh_) {
+    SolverResult again = last_;
+    again.info.iterations = 0;
+    again.info.factorizations = 0;
+    again.info.solve_time_ms = ms_since(t0);
+    return again;
+  }
+  const int m = 3 * n_, nfd = 3 * nf_;
+  SolverResult res;
+  SolverInfo& info = res.info;
+  info.setup_time_ms = setup_ms_;
+  res.dU.setZero(n_, 3);
+  res.dual.setZero(n_, 3);
+  if (!bh_.allFinite()) {
+    // Finite U and dp can still overflow with extreme stiffness.
+    info.status = SolverStatus::non_finite_input;
+    info.objective = std::numeric_limits<double>::quiet_NaN();
+    info.solve_time_ms = ms_since(t0);
+    return res;
+  }
+  if (settings_.warm_start && have_prev_) {
+    yh_.resize(m);
+    for (int i = 0; i < m; ++i) yh_(i) = s_ * Einv_(i) * dual_prev_(i / 3, i % 3);
+    xh_.resize(nfd);
+    for (int j = 0; j < nf_; ++j)
+      xh_.segment<3>(3 * j) = (V_prev_.row(free_(j)) - U_.row(free_(j))).transpose();
+    xh_ = Dinv_.cwiseProduct(xh_);
+  } else {
+    xh_.setZero(nfd);
+    yh_.setZero(m);
+  }
+  zh_ = Ah_ * xh_;
+
+  const double alpha = settings_.alpha;
+  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), yp(m), tmp(m);
+  // rho from the data: the ratio of the dual scale (the weights) to the force scale of the
+  // frame (rms nodal force at dU = 0). Refactor only when it moves by more than the tolerance.
+  {
+    const double fs = std::sqrt(bh_.squaredNorm() / n_);
+    if (fs > 0) {
+      const double target = settings_.rho * wh_.mean() / fs;
+      const double ratio = target / rho_of(rho_idx_);
+      if (!rho_set_ || ratio > settings_.adaptive_rho_tolerance ||
+          ratio < 1.0 / settings_.adaptive_rho_tolerance) {
+        rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(target)));
+        rho_set_ = true;
+      }
+    }
+  }
+  const Eigen::SimplicialLDLT<SparseMatrixd>* ldlt = &factor(rho_idx_, &info.factorizations);
+  double rho = rho_of(rho_idx_);
+  info.status = SolverStatus::max_iter_reached;
+  int k = 0;
+  double pobj = 0, gap = 0, rp = 0, rd = 0;
+  for (k = 1; k <= settings_.max_iter; ++k) {
+    tmp.noalias() = rho * zh_ - yh_;
+    rhs.noalias() = AhT_ * tmp;
+    rhs += settings_.sigma * xh_;
+    xt = ldlt->solve(rhs);
+    zt.noalias() = Ah_ * xt;
+    xh_ = alpha * xt + (1 - alpha) * xh_;
+    zr = alpha * zt + (1 - alpha) * zh_;
+    v = zr + yh_ / rho;
+    prox(v, rho, zn);
+    yh_ += rho * (zr - zn);
+    zh_.swap(zn);
+
+    const bool last = k == settings_.max_iter;
+    if (k % settings_.check_interval != 0 && !last) continue;
+    Ax.noalias() = Ah_ * xh_;
+    ATy.noalias() = AhT_ * yh_;
+    // Objective at x (unscaled, unitless).
+    pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
+    for (int i = 0; i < n_; ++i)
+      pobj += w_(i) * (Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i)).norm() * Einv_(3 * i);
+    // Dual bound from y projected on its feasible balls.
+    yp = yh_;
+    bool projected = false;
+    for (int i = 0; i < n_; ++i) {
+      const double nr = yp.segment<3>(3 * i).norm();
+      if (nr > wh_(i)) {
+        yp.segment<3>(3 * i) *= wh_(i) / nr;
+        projected = true;
+      }
+    }
+    Eigen::VectorXd aty = projected ? Eigen::VectorXd(AhT_ * yp) : ATy;
+    const double dual_h = yp.dot(bh_) - 0.5 * aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
+    const double dobj = dual_h / s_ + rim_const_;
+    gap = std::max(pobj - dobj, 0.0);
+    rp = (Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
+    rd = (Pd_.cwiseProduct(xh_) + ATy).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+    if (!std::isfinite(pobj) || !xh_.allFinite()) {
+      info.status = SolverStatus::non_finite_input;
+      break;
+    }
+    if (gap <= settings_.eps_abs + settings_.eps_rel * std::abs(pobj)) {
+      info.status = SolverStatus::solved;
+      break;
+    }
+    if (settings_.time_limit > 0 && ms_since(t0) > 1e3 * settings_.time_limit) {
+      info.status = SolverStatus::time_limit_reached;
+      break;
+    }
+    if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval) {
+      const double rp_h = (Ax - zh_).lpNorm<Eigen::Infinity>();
+      const double rd_h = (Pd_.cwiseProduct(xh_) + ATy).lpNorm<Eigen::Infinity>();
+      const double pn = std::max(
+          {(Ax + bh_).lpNorm<Eigen::Infinity>(), (zh_ + bh_).lpNorm<Eigen::Infinity>(), 1e-30});
+      const double dn = std::max(
+          {Pd_.cwiseProduct(xh_).lpNorm<Eigen::Infinity>(), ATy.lpNorm<Eigen::Infinity>(), 1e-30});
+      if (rp_h > 0 && rd_h > 0) {
+        const double target = rho * std::sqrt((rp_h / pn) / (rd_h / dn));
+        const double ratio = target / rho;
+        if (ratio > settings_.adaptive_rho_tolerance ||
+            ratio < 1.0 / settings_.adaptive_rho_tolerance) {
+          rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(target)));
+          rho_idx_ = std::clamp(rho_idx_, -80, 80);
+          ldlt = &factor(rho_idx_, &info.factorizations);
+          rho = rho_of(rho_idx_);
+        }
+      }
+    }
+  }
+  info.iterations = std::min(k, settings_.max_iter);
+  info.objective = pobj;
+  info.duality_gap = gap;
+  info.primal_residual = rp;
+  info.dual_residual = rd;
+  info.rho = rho;
+  const Eigen::VectorXd x = D_.cwiseProduct(xh_);
+  for (int i = 0; i < n_; ++i)
+    if (is_rim_(i)) res.dU.row(i) = -U_.row(i);
+  for (int j = 0; j < nf_; ++j) res.dU.row(free_(j)) = x.segment<3>(3 * j).transpose();
+  for (int i = 0; i < m; ++i) res.dual(i / 3, i % 3) = yh_(i) * E_(i) / s_;
+  if (info.status != SolverStatus::non_finite_input) {
+    V_prev_ = U_ + res.dU;
+    dual_prev_ = res.dual;
+    have_prev_ = true;
+    fresh_ = info.status == SolverStatus::solved;
+  } else {
+    have_prev_ = false;
+  }
+  info.solve_time_ms = ms_since(t0);
+  if (fresh_) last_ = res;
+  return res;
+}
+
+}  // namespace bubble

@@ -1,0 +1,137 @@
+// Warm-started ADMM for the regularised force estimate (method.md section 3).
+//
+//   minimise  sum_i w_i || F_ext(U + dU, dp)_i ||  +  (k_u / N) sum_i || dU_i ||^2
+//   s.t.      (U + dU)_i = 0 on the rim,   w_i = k_f |rim| / N on the rim, k_f elsewhere.
+//
+// The rim constraint is exact: rim dofs are eliminated, the unknown is x = dU on free nodes.
+// With F = A x + b (A = the free columns of K, b = A U_free - dp a n) the problem is
+//   minimise  c ||x||^2 + sum_i w_i ||(A x + b)_i||,   c = k_u / N,
+// split OSQP-style as z = A x: the x-update is a sparse solve with (P + sigma I + rho A^T A)
+// (factored once per rho), the z-update a block soft-threshold, plus over-relaxation.
+// The data are equilibrated (Ruiz, per-node blocks, plus a cost scale) so that rho and the
+// iteration count do not depend on units or mesh size; rho adapts as in OSQP and every rho
+// ever used keeps its factorization, so switching back is free.
+//
+// Termination uses the duality gap: every dual iterate is dual feasible (||y_i|| <= w_i), so
+// objective(x) - dual(y) bounds the suboptimality of the returned x. "solved" means
+// gap <= eps_abs + eps_rel * objective.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+#include <map>
+#include <memory>
+#include <string>
+
+#include "membrane.h"
+
+namespace bubble {
+
+struct SolverSettings {
+  double rho = 0.1;                    // initial ADMM step (scaled problem)
+  double sigma = 1e-6;                 // proximal regularisation of the x-update
+  double alpha = 1.6;                  // over-relaxation in (0, 2)
+  bool adaptive_rho = false;           // rebalance rho from the residual ratio (OSQP rule)
+  double adaptive_rho_tolerance = 5.;  // change rho only when it moves by more than this factor
+  int adaptive_rho_interval = 25;      // iterations between rho updates
+  double eps_abs = 1e-6;               // absolute duality-gap tolerance (objective is unitless)
+  double eps_rel = 5e-4;               // relative duality-gap tolerance
+  int max_iter = 4000;
+  int check_interval = 5;   // iterations between termination checks
+  double time_limit = 0.0;  // seconds per solve, 0 = none
+  int scaling_iter = 0;     // Ruiz equilibration passes, 0 = no scaling
+  bool warm_start = true;   // start each solve from the previous solution
+  void validate() const;    // throws InputError
+};
+
+enum class SolverStatus { solved, max_iter_reached, time_limit_reached, non_finite_input };
+std::string to_string(SolverStatus s);
+
+struct SolverInfo {
+  SolverStatus status = SolverStatus::max_iter_reached;
+  int iterations = 0;
+  double primal_residual = 0;  // ||A x - z||_inf in newtons
+  double dual_residual = 0;    // ||P x + A^T y||_inf (objective per metre)
+  double objective = 0;        // objective at the returned dU (unitless)
+  double duality_gap = 0;      // objective - best dual bound (unitless, >= 0)
+  double rho = 0;              // rho in use at the end (scaled problem)
+  int factorizations = 0;      // factorizations computed during this solve
+  double setup_time_ms = 0;    // time of the last setup / refactorisation triggered by setup
+  double solve_time_ms = 0;
+};
+
+struct SolverResult {
+  RowMatrixX3d dU;    // N x 3 correction (m); rim rows are -U_rim
+  RowMatrixX3d dual;  // N x 3 multipliers of F_ext, ||dual_i|| <= w_i (1/N)
+  SolverInfo info;
+};
+
+class GroupLassoSolver {
+ public:
+  // K: 3N x 3N stiffness; area_normals: N x 3 (a_i n_i); boundary: rim node indices.
+  GroupLassoSolver(const SparseMatrixd& K, const Eigen::Ref<const RowMatrixX3d>& area_normals,
+                   const Eigen::Ref<const Eigen::VectorXi>& boundary, double k_f, double k_u,
+                   const SolverSettings& settings = SolverSettings());
+
+  // Changes the weights; rescales and refactors (cheap but not per-frame).
+  void set_weights(double k_f, double k_u);
+  // Changes settings; refactors only if rho or scaling changed.
+  void set_settings(const SolverSettings& settings);
+  const SolverSettings& settings() const { return settings_; }
+
+  // New frame data (no refactorisation). Throws InputError (state untouched) on bad input.
+  void update(const Eigen::Ref<const RowMatrixX3d>& U, double dp);
+  // Start the next solve from corrected displacements V = U + dU (N x 3) and multipliers.
+  void warm_start(const Eigen::Ref<const RowMatrixX3d>& V,
+                  const Eigen::Ref<const RowMatrixX3d>& dual);
+  // Forget the previous solution: the next solve starts cold (dU = 0, dual = 0).
+  void cold_start();
+  SolverResult solve();
+
+  int n_nodes() const { return n_; }
+  double setup_time_ms() const { return setup_ms_; }
+
+ private:
+  void setup();  // scaling + A^T A + first factorization
+  const Eigen::SimplicialLDLT<SparseMatrixd>& factor(int rho_index, int* count);
+  double rho_of(int idx) const;
+  void prox(const Eigen::VectorXd& v, double rho, Eigen::VectorXd& out) const;
+
+  int n_ = 0, nf_ = 0;
+  Eigen::VectorXi free_;    // free node ids
+  Eigen::VectorXi is_rim_;  // 1 on rim
+  SparseMatrixd A_;         // 3N x 3Nf, unscaled
+  RowMatrixX3d an_;         // a n
+  Eigen::VectorXd w_;       // N weights
+  double k_f_ = 0, k_u_ = 0, c_ = 0;
+  SolverSettings settings_;
+
+  // Scaling: x = D xh, zh = E z, cost multiplied by s.
+  Eigen::VectorXd D_, E_, Dinv_, Einv_;  // per dof / per row (expanded)
+  Eigen::VectorXd wh_;                   // s w_i / E_i per node
+  double s_ = 1;
+  SparseMatrixd Ah_, AhT_, AtA_;
+  Eigen::VectorXd Pd_;  // diagonal of the scaled P = 2 s c D^2
+  std::map<int, std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixd>>> factors_;
+  int rho_idx_ = 0;
+  bool rho_set_ = false;
+
+  // Frame data.
+  bool have_data_ = false;
+  RowMatrixX3d U_;
+  double dp_ = 0;
+  Eigen::VectorXd bh_;  // scaled b
+  double rim_const_ = 0;
+
+  // Iterates (scaled).
+  bool have_prev_ = false;
+  RowMatrixX3d V_prev_, dual_prev_;
+  // The last result, returned again when solve() sees exactly the same data (determinism).
+  bool fresh_ = false;
+  SolverResult last_;
+  Eigen::VectorXd xh_, zh_, yh_;
+  double setup_ms_ = 0;
+};
+
+}  // namespace bubble

@@ -1,0 +1,236 @@
+"""Membrane model (C++ CST plane stress): stiffness properties, forces, derived outputs."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+from bubble_rt.membrane import Material, MembraneModel
+from bubble_rt.mesh import Mesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+
+@functools.cache
+def _model(name: str = "coarse", E: float = 1.317e6) -> MembraneModel:
+    return MembraneModel(Mesh.preset(name), Material(E=E))
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
+def test_stiffness_is_symmetric():
+    K = _model().stiffness
+    assert K.shape == (3 * 227, 3 * 227)
+    asym = abs(K - K.T).max()
+    assert asym <= 1e-12 * abs(K).max()
+
+
+def test_stiffness_is_positive_semidefinite():
+    K = _model().stiffness.toarray()
+    ev = np.linalg.eigvalsh(K)
+    assert ev.min() >= -1e-10 * ev.max()
+    # A free (unclamped) membrane has exactly the 6 rigid modes plus in-plane mechanisms of
+    # a thin shell; it must not be indefinite, and it must be stiff somewhere.
+    assert ev.max() > 0
+
+
+def test_rigid_translations_give_zero_force():
+    m = _model()
+    K = m.stiffness
+    scale = abs(K).max() * 1e-3
+    for axis in np.eye(3):
+        U = np.tile(axis * 1e-3, (m.n_nodes, 1))
+        F = m.external_forces(U, 0.0)
+        assert np.abs(F).max() <= 1e-9 * scale
+
+
+def test_infinitesimal_rotations_give_zero_force():
+    m = _model()
+    X = m.mesh.vertices
+    ref = np.abs(m.stiffness @ (1e-6 * np.random.default_rng(0).normal(size=3 * m.n_nodes))).max()
+    for axis in np.eye(3):
+        U = 1e-6 * np.cross(axis, X)
+        F = m.external_forces(U, 0.0)
+        assert np.abs(F).max() <= 1e-8 * ref * 1e3
+
+
+def _flat_mesh() -> Mesh:
+    base = Mesh.preset("coarse")
+    V = base.vertices.copy()
+    V[:, 2] = 0.0
+    return Mesh(V, base.triangles, base.boundary)
+
+
+@pytest.mark.parametrize("eps", [(1e-3, 0.0), (0.0, 2e-3), (1e-3, -5e-4)])
+def test_flat_mesh_uniform_stretch_matches_plane_stress(eps):
+    E, nu, t = 2.0e6, 0.3, 0.5e-3
+    mesh = _flat_mesh()
+    m = MembraneModel(mesh, Material(E=E, nu=nu, thickness=t))
+    ex, ey = eps
+    X = mesh.vertices
+    U = np.stack([ex * X[:, 0], ey * X[:, 1], np.zeros(len(X))], axis=1)
+    F = m.external_forces(U, 0.0)
+    sxx = E / (1 - nu**2) * (ex + nu * ey)
+    syy = E / (1 - nu**2) * (ey + nu * ex)
+    area = m.areas.sum()
+    # Interior nodes are in equilibrium under a uniform stress field.
+    assert np.abs(F[mesh.interior]).max() <= 1e-9 * max(abs(sxx), abs(syy)) * t * 1e-3
+    # Virial identity: sum_i F_i x_i^T = t * area * sigma (exact for CST under linear fields).
+    virial = F.T @ X
+    assert virial[0, 0] == pytest.approx(t * area * sxx, rel=1e-9, abs=1e-12)
+    assert virial[1, 1] == pytest.approx(t * area * syy, rel=1e-9, abs=1e-12)
+    assert abs(virial[0, 1]) <= 1e-9 * t * area * max(abs(sxx), abs(syy))
+    # Strain energy equals t * area * eps^T D eps / 2.
+    energy = 0.5 * np.sum(F * U)
+    analytic = 0.5 * t * area * (sxx * ex + syy * ey)
+    assert energy == pytest.approx(analytic, rel=1e-9)
+
+
+def test_areas_sum_to_surface_area():
+    m = _model()
+    V, T = m.mesh.vertices, m.mesh.triangles
+    tri_area = 0.5 * np.linalg.norm(
+        np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1
+    )
+    assert m.areas.sum() == pytest.approx(tri_area.sum(), rel=1e-12)
+    assert (m.areas > 0).all()
+
+
+def test_normals_are_unit_and_outward():
+    m = _model()
+    assert np.allclose(np.linalg.norm(m.normals, axis=1), 1.0)
+    assert (m.normals[m.mesh.interior, 2] > 0).mean() > 0.95
+
+
+def test_pressure_force_sums_to_footprint_vector_area():
+    # sum_i a_i n_i approximates the surface's vector area, which only depends on its rim.
+    m = _model()
+    total = m.area_normals.sum(axis=0)
+    V = m.mesh.vertices
+    rim = m.mesh.boundary
+    c = V[rim, :2].mean(axis=0)
+    order = rim[np.argsort(np.arctan2(V[rim, 1] - c[1], V[rim, 0] - c[0]))]
+    x, y = V[order, 0], V[order, 1]
+    polygon = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    assert total[2] == pytest.approx(polygon, rel=0.02)
+    assert np.abs(total[:2]).max() <= 0.01 * polygon
+
+
+def test_external_forces_matches_definition():
+    m = _model()
+    rng = np.random.default_rng(1)
+    U = rng.normal(scale=1e-4, size=(m.n_nodes, 3))
+    dp = 250.0
+    expected = (m.stiffness @ U.ravel()).reshape(-1, 3) - dp * m.areas[:, None] * m.normals
+    assert np.allclose(m.external_forces(U, dp), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_pressure_only_pushes_inward():
+    m = _model()
+    F = m.external_forces(np.zeros((m.n_nodes, 3)), 100.0)
+    p = m.normal_pressure(F)
+    assert np.allclose(p, 100.0)
+
+
+def test_contact_mask_threshold():
+    m = _model()
+    p = np.zeros(m.n_nodes)
+    p[:5] = 5000.0
+    p[5] = 1999.0
+    mask = m.contact_mask(p, k_const=2000.0, k_linear=2.0)
+    assert mask[:5].all() and not mask[5:].any()
+    # Uniformly high pressure: the relative threshold (2 x mean) removes everything.
+    assert not m.contact_mask(np.full(m.n_nodes, 1e4)).any()
+
+
+def test_net_force_skips_rim():
+    m = _model()
+    F = np.ones((m.n_nodes, 3))
+    assert np.allclose(m.net_force(F), m.mesh.interior.sum())
+
+
+@pytest.mark.parametrize(
+    "bad", [dict(E=0.0), dict(E=float("nan")), dict(nu=0.6), dict(thickness=-1.0)]
+)
+def test_material_rejects_bad_values(bad):
+    with pytest.raises(ValueError):
+        Material(**bad)
+
+
+def test_external_forces_rejects_nan_and_wrong_shape():
+    m = _model()
+    U = np.zeros((m.n_nodes, 3))
+    U[3, 2] = np.inf
+    with pytest.raises(ValueError, match="U.*node 3"):
+        m.external_forces(U, 0.0)
+    with pytest.raises(ValueError, match="shape"):
+        m.external_forces(np.zeros((m.n_nodes, 2)), 0.0)
+    with pytest.raises(ValueError, match="dp"):
+        m.external_forces(np.zeros((m.n_nodes, 3)), float("nan"))
+
+
+def test_extreme_moduli_scale_stiffness_linearly():
+    soft, stiff = _model("coarse", 1e3), _model("coarse", 1e9)
+    ratio = stiff.stiffness.data.max() / soft.stiffness.data.max()
+    assert ratio == pytest.approx(1e6, rel=1e-9)
+
+
+# ---------------------------------------------------------------- property-based invariants
+_small = st.floats(-1e-3, 1e-3, allow_nan=False)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    a=st.floats(-3, 3),
+    b=st.floats(-3, 3),
+    dp1=st.floats(-500, 500),
+    dp2=st.floats(-500, 500),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_forces_are_linear_in_displacement_and_pressure(a, b, dp1, dp2, seed):
+    m = _model()
+    rng = np.random.default_rng(seed)
+    U1, U2 = rng.normal(scale=1e-4, size=(2, m.n_nodes, 3))
+    lhs = m.external_forces(a * U1 + b * U2, a * dp1 + b * dp2)
+    rhs = a * m.external_forces(U1, dp1) + b * m.external_forces(U2, dp2)
+    assert np.allclose(lhs, rhs, rtol=1e-9, atol=1e-9 * (np.abs(rhs).max() + 1e-6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    t=st.tuples(_small, _small, _small),
+    w=st.tuples(_small, _small, _small),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_adding_a_rigid_motion_does_not_change_forces(t, w, seed):
+    m = _model()
+    rng = np.random.default_rng(seed)
+    U = rng.normal(scale=1e-4, size=(m.n_nodes, 3))
+    rigid = np.asarray(t) + np.cross(np.asarray(w) * 1e-3, m.mesh.vertices)
+    F0 = m.external_forces(U, 10.0)
+    F1 = m.external_forces(U + rigid, 10.0)
+    assert np.allclose(F0, F1, atol=1e-9 * np.abs(F0).max())
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    axis=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0.1, 1)),
+    angle=st.floats(-np.pi, np.pi),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_energy_is_invariant_under_rotating_the_mesh(axis, angle, seed):
+    base = Mesh.preset("coarse")
+    R = _rotation(np.asarray(axis), angle)
+    T = np.eye(4)
+    T[:3, :3] = R
+    m0, m1 = _model(), MembraneModel(base.transformed(T))
+    U = np.random.default_rng(seed).normal(scale=1e-4, size=(base.n_nodes, 3))
+    e0 = np.sum(U * m0.external_forces(U, 0.0))
+    e1 = np.sum((U @ R.T) * m1.external_forces(U @ R.T, 0.0))
+    assert e1 == pytest.approx(e0, rel=1e-9)
+    assert np.allclose(m1.normals, m0.normals @ R.T, atol=1e-12)
