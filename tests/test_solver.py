@@ -1,0 +1,397 @@
+"""ADMM group-lasso solver: agreement with a CVXPY + Clarabel reference and hard cases."""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import numpy as np
+import pytest
+from bubble_rt.membrane import Material, MembraneModel
+from bubble_rt.mesh import MIN_ANGLE_DEG, Mesh, triangle_angles_deg
+from bubble_rt.solver import GroupLassoSolver, SolverResult, SolverSettings
+
+K_F, K_U = 0.3322, 537592.0
+K_CONST, K_LINEAR = 2000.0, 2.0
+STATUSES = {"solved", "max_iter_reached", "time_limit_reached", "non_finite_input"}
+
+
+@functools.cache
+def _model(name: str = "coarse", E: float = 1.317e6) -> MembraneModel:
+    return MembraneModel(Mesh.preset(name), Material(E=E))
+
+
+def synthetic_field(
+    mesh: Mesh,
+    kind: str = "indent",
+    depth: float = 8e-3,
+    noise: float = 2e-4,
+    seed: int = 0,
+    centre: tuple[float, float] = (0.01, 0.005),
+) -> tuple[np.ndarray, float]:
+    """A smooth contact-like displacement (m) plus Gaussian noise, and a matching dp (Pa)."""
+    V = mesh.vertices
+    r = np.linalg.norm(V[:, :2] - np.asarray(centre), axis=1)
+    bump = np.exp(-((r / 0.015) ** 2))
+    n = np.zeros_like(V)
+    n[:, 2] = 1.0
+    U = -depth * bump[:, None] * n
+    if kind == "shear":
+        U[:, 0] += 0.6 * depth * bump
+    U[mesh.boundary] = 0.0
+    rng = np.random.default_rng(seed)
+    U = U + rng.normal(scale=noise, size=U.shape)
+    return np.ascontiguousarray(U), 40_000.0 * depth
+
+
+def objective(model: MembraneModel, U: np.ndarray, dp: float, dU: np.ndarray) -> float:
+    """The group-lasso objective of method.md section 3 (dimensionless)."""
+    n = model.n_nodes
+    rim = ~model.mesh.interior
+    w = np.where(rim, K_F * rim.sum() / n, K_F)
+    F = model.external_forces(U + dU, dp)
+    return float(w @ np.linalg.norm(F, axis=1) + K_U / n * np.sum(dU**2))
+
+
+@functools.cache
+def _reference(name: str, kind: str) -> tuple[np.ndarray, float]:
+    """CVXPY + Clarabel at tight tolerance: (dU, objective)."""
+    import cvxpy as cp
+
+    model = _model(name)
+    U, dp = synthetic_field(model.mesh, kind)
+    n = model.n_nodes
+    rim = ~model.mesh.interior
+    w = np.where(rim, K_F * rim.sum() / n, K_F)
+    dU = cp.Variable((n, 3))
+    Fv = model.stiffness @ cp.reshape(U + dU, (3 * n,), order="C")
+    F = cp.reshape(Fv, (n, 3), order="C") - dp * model.area_normals
+    prob = cp.Problem(
+        cp.Minimize(w @ cp.norm(F, 2, axis=1) + K_U / n * cp.sum_squares(dU)),
+        [dU[rim] == -U[rim]],
+    )
+    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    return np.asarray(dU.value), float(prob.value)
+
+
+def _solve(model: MembraneModel, U, dp, settings=None, k_f=K_F, k_u=K_U) -> SolverResult:
+    s = GroupLassoSolver(model, k_f, k_u, settings)
+    return s.solve_frame(U, dp)
+
+
+def _check_against_reference(name: str, kind: str, settings: SolverSettings, gap_tol: float):
+    model = _model(name)
+    U, dp = synthetic_field(model.mesh, kind)
+    dU_ref, obj_ref = _reference(name, kind)
+    res = _solve(model, U, dp, settings)
+    assert res.info.status == "solved"
+    obj = objective(model, U, dp, res.dU)
+    assert obj == pytest.approx(res.info.objective, rel=1e-9)
+    gap = (obj - obj_ref) / obj_ref
+    assert -1e-7 <= gap <= gap_tol
+    # Exact rim constraint.
+    assert np.array_equal(
+        (U + res.dU)[model.mesh.boundary], np.zeros((len(model.mesh.boundary), 3))
+    )
+    # Contact sets agree except at nodes within 2 % of the threshold.
+    F, F_ref = (model.external_forces(U + d, dp) for d in (res.dU, dU_ref))
+    p, p_ref = model.normal_pressure(F), model.normal_pressure(F_ref)
+    thresh = max(K_CONST, K_LINEAR * (model.areas @ p_ref) / model.areas.sum())
+    c, c_ref = (model.contact_mask(x, K_CONST, K_LINEAR) for x in (p, p_ref))
+    differ = c != c_ref
+    assert np.all(np.abs(p_ref[differ] - thresh) <= 0.02 * thresh)
+    assert c_ref.sum() > 0
+    # Net force within 1 %.
+    f, f_ref = model.net_force(F), model.net_force(F_ref)
+    assert np.linalg.norm(f - f_ref) <= 0.01 * np.linalg.norm(f_ref)
+
+
+@pytest.mark.parametrize("kind", ["indent", "shear"])
+@pytest.mark.parametrize("name", ["coarse", "medium", "fine"])
+def test_matches_reference_at_default_settings(name, kind):
+    _check_against_reference(name, kind, SolverSettings(), 1e-3)
+
+
+@pytest.mark.parametrize("kind", ["indent", "shear"])
+@pytest.mark.parametrize("name", ["coarse", "medium", "fine"])
+def test_matches_reference_at_tight_settings(name, kind):
+    _check_against_reference(name, kind, SolverSettings.tight(), 1e-5)
+
+
+# ------------------------------------------------------------------------- hard cases
+def _assert_honest(res: SolverResult, model: MembraneModel, U, dp, settings=None):
+    assert res.info.status in STATUSES
+    assert np.isfinite(res.dU).all() and np.isfinite(res.dual).all()
+    assert np.isfinite(res.info.objective)
+    s = settings or SolverSettings()
+    if res.info.status == "solved":
+        assert res.info.duality_gap <= s.eps_abs + s.eps_rel * res.info.objective + 1e-12
+    # Never worse than not correcting at all (dU = -U on the rim only).
+    dU0 = np.zeros_like(U)
+    dU0[model.mesh.boundary] = -U[model.mesh.boundary]
+
+
+def test_zero_input():
+    model = _model()
+    U = np.zeros((model.n_nodes, 3))
+    res = _solve(model, U, 0.0)
+    assert res.info.status == "solved"
+    assert np.array_equal(res.dU, np.zeros_like(U))
+    assert res.info.objective == 0.0
+
+
+def test_dp_only():
+    model = _model()
+    U = np.zeros((model.n_nodes, 3))
+    res = _solve(model, U, 500.0)
+    _assert_honest(res, model, U, 500.0)
+    assert res.info.status == "solved"
+    assert res.info.objective <= objective(model, U, 500.0, np.zeros_like(U)) + 1e-12
+
+
+def test_noise_only():
+    model = _model("medium")
+    rng = np.random.default_rng(3)
+    U = rng.normal(scale=2e-4, size=(model.n_nodes, 3))
+    res = _solve(model, U, 0.0)
+    assert res.info.status == "solved"
+    F = model.external_forces(U + res.dU, 0.0)
+    F_raw = model.external_forces(np.where(model.mesh.interior[:, None], U, 0.0), 0.0)
+    # The group lasso removes most of the noise force.
+    assert np.linalg.norm(model.net_force(F)) < 0.2 * np.abs(F_raw).sum(axis=1).max()
+    assert np.abs(F).sum() < 0.5 * np.abs(F_raw).sum()
+
+
+def test_indentation_of_half_the_dome_height():
+    model = _model("medium")
+    depth = 0.5 * model.mesh.vertices[:, 2].max()
+    U, dp = synthetic_field(model.mesh, depth=depth)
+    res = _solve(model, U, dp)
+    _assert_honest(res, model, U, dp)
+    assert res.info.status == "solved"
+    F = model.external_forces(U + res.dU, dp)
+    assert model.net_force(F)[2] < 0  # the object pushes the membrane down (inward)
+
+
+@pytest.mark.parametrize("where", ["U_nan", "U_inf", "dp_nan", "dp_inf"])
+def test_non_finite_input_raises_and_leaves_state_intact(where):
+    model = _model()
+    U, dp = synthetic_field(model.mesh)
+    a = GroupLassoSolver(model)
+    b = GroupLassoSolver(model)
+    first = a.solve_frame(U, dp)
+    b.solve_frame(U, dp)
+    bad_U, bad_dp = U.copy(), dp
+    if where == "U_nan":
+        bad_U[7, 1] = np.nan
+    elif where == "U_inf":
+        bad_U[7, 1] = np.inf
+    elif where == "dp_nan":
+        bad_dp = float("nan")
+    else:
+        bad_dp = float("inf")
+    before = bad_U.copy()
+    with pytest.raises(ValueError, match="node 7" if where.startswith("U") else "dp"):
+        a.update(bad_U, bad_dp)
+    assert np.array_equal(bad_U, before, equal_nan=True)  # nothing written to the input
+    U2, dp2 = synthetic_field(model.mesh, seed=5)
+    ra, rb = a.solve_frame(U2, dp2), b.solve_frame(U2, dp2)
+    assert np.array_equal(ra.dU, rb.dU)
+    assert np.isfinite(first.dU).all()
+
+
+def test_wrong_shape_raises_value_error_naming_argument():
+    model = _model()
+    s = GroupLassoSolver(model)
+    with pytest.raises(ValueError, match="U must have shape"):
+        s.update(np.zeros((model.n_nodes - 1, 3)), 0.0)
+    with pytest.raises(ValueError, match="primal"):
+        s.warm_start(np.zeros((3, 3)), np.zeros((model.n_nodes, 3)))
+
+
+def _weights_case(k_f: float, k_u: float):
+    model = _model()
+    U, dp = synthetic_field(model.mesh)
+    settings = SolverSettings(max_iter=4000)
+    res = _solve(model, U, dp, settings, k_f=k_f, k_u=k_u)
+    assert res.info.status in STATUSES
+    assert np.isfinite(res.dU).all() and np.isfinite(res.info.objective)
+    return res
+
+
+def test_k_f_tiny():
+    res = _weights_case(K_F * 1e-6, K_U)
+    assert res.info.status == "solved"
+
+
+def test_k_f_huge():
+    res = _weights_case(K_F * 1e6, K_U)
+    assert res.info.status != "non_finite_input"
+
+
+def test_k_u_tiny():
+    res = _weights_case(K_F, K_U * 1e-6)
+    assert res.info.status != "non_finite_input"
+
+
+def test_k_u_huge():
+    res = _weights_case(K_F, K_U * 1e6)
+    assert res.info.status == "solved"
+    # Corrections are too expensive: dU stays tiny on the free nodes.
+    assert np.abs(res.dU[_model().mesh.interior]).max() < 1e-5
+
+
+def test_E_soft_1e3():
+    model = _model("coarse", 1e3)
+    U, dp = synthetic_field(model.mesh)
+    res = _solve(model, U, dp)
+    _assert_honest(res, model, U, dp)
+
+
+def test_E_stiff_1e9():
+    model = _model("coarse", 1e9)
+    U, dp = synthetic_field(model.mesh)
+    res = _solve(model, U, dp)
+    _assert_honest(res, model, U, dp)
+
+
+def _sliver_mesh() -> Mesh:
+    """The coarse preset with one interior node slid along an edge until its worst triangle's
+    smallest angle is just above the quality bound."""
+    base = Mesh.preset("coarse")
+    V0, T = base.vertices.copy(), base.triangles
+    node = int(np.flatnonzero(base.interior)[len(base.vertices) // 2])
+    tri = T[(T == node).any(axis=1)][0]
+    other = int(tri[tri != node][0])
+    target = MIN_ANGLE_DEG * 1.05
+
+    def worst(t: float) -> float:
+        V = V0.copy()
+        V[node] = (1 - t) * V0[node] + t * V0[other]
+        return float(triangle_angles_deg(V, T).min())
+
+    lo, hi = 0.0, 0.99
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if worst(mid) > target else (lo, mid)
+    V = V0.copy()
+    V[node] = (1 - lo) * V0[node] + lo * V0[other]
+    return Mesh.validated(V, T)
+
+
+def test_sliver_triangles_just_above_quality_bound():
+    mesh = _sliver_mesh()
+    assert MIN_ANGLE_DEG < mesh.min_angle_deg() < MIN_ANGLE_DEG * 1.1
+    model = MembraneModel(mesh)
+    U, dp = synthetic_field(mesh)
+    res = _solve(model, U, dp)
+    _assert_honest(res, model, U, dp)
+    assert res.info.status == "solved"
+
+
+def test_sudden_jump_warm_start_gives_cold_start_answer():
+    model = _model("medium")
+    U1, dp1 = synthetic_field(model.mesh, centre=(-0.03, -0.01), depth=2e-3, seed=1)
+    U2, dp2 = synthetic_field(model.mesh, centre=(0.03, 0.015), depth=9e-3, seed=2)
+    warm = GroupLassoSolver(model)
+    warm.solve_frame(U1, dp1)
+    rw = warm.solve_frame(U2, dp2)
+    rc = _solve(model, U2, dp2)
+    assert rw.info.status == rc.info.status == "solved"
+    assert rw.info.objective == pytest.approx(rc.info.objective, rel=1e-3)
+    fw = model.net_force(model.external_forces(U2 + rw.dU, dp2))
+    fc = model.net_force(model.external_forces(U2 + rc.dU, dp2))
+    assert np.linalg.norm(fw - fc) <= 0.01 * np.linalg.norm(fc)
+
+
+def test_same_input_twice_gives_identical_output():
+    model = _model()
+    U, dp = synthetic_field(model.mesh)
+    s = GroupLassoSolver(model)
+    a = s.solve_frame(U, dp)
+    b = s.solve_frame(U.copy(), dp)
+    assert np.array_equal(a.dU, b.dU) and np.array_equal(a.dual, b.dual)
+    c = GroupLassoSolver(model).solve_frame(U, dp)
+    assert np.array_equal(a.dU, c.dU)
+
+
+def test_warm_start_converges_faster_on_a_sequence():
+    model = _model("medium")
+    s = GroupLassoSolver(model)
+    cold = SolverSettings(warm_start=False)
+    c = GroupLassoSolver(model, settings=cold)
+    warm_its, cold_its = 0, 0
+    for k in range(4):
+        U, dp = synthetic_field(model.mesh, centre=(0.01 + 0.002 * k, 0.005), seed=10 + k)
+        warm_its += s.solve_frame(U, dp).info.iterations
+        cold_its += c.solve_frame(U, dp).info.iterations
+    assert warm_its < cold_its
+
+
+def test_max_iter_is_a_status_not_an_error():
+    model = _model()
+    U, dp = synthetic_field(model.mesh)
+    res = _solve(model, U, dp, SolverSettings(max_iter=3, eps_rel=1e-12, eps_abs=1e-14))
+    assert res.info.status == "max_iter_reached"
+    assert res.info.iterations == 3
+    assert np.isfinite(res.dU).all()
+
+
+def test_time_limit_is_a_status_not_an_error():
+    model = _model("fine")
+    U, dp = synthetic_field(model.mesh)
+    res = _solve(model, U, dp, SolverSettings(time_limit=1e-4, eps_rel=1e-12, check_interval=1))
+    assert res.info.status == "time_limit_reached"
+    assert np.isfinite(res.dU).all()
+
+
+@pytest.mark.parametrize(
+    "bad", [dict(alpha=2.5), dict(rho=-1.0), dict(max_iter=0), dict(eps_abs=0.0, eps_rel=0.0)]
+)
+def test_settings_reject_bad_values(bad):
+    with pytest.raises(ValueError):
+        SolverSettings(**bad)
+
+
+def test_set_weights_and_settings_change_the_answer():
+    model = _model()
+    U, dp = synthetic_field(model.mesh)
+    s = GroupLassoSolver(model)
+    a = s.solve_frame(U, dp)
+    s.set_weights(K_F * 10, K_U)
+    b = s.solve_frame(U, dp)
+    assert b.info.objective > a.info.objective
+    s.set_weights(K_F, K_U)
+    s.set_settings(SolverSettings.tight())
+    c = s.solve_frame(U, dp)
+    assert c.info.status == "solved"
+    assert c.info.objective <= a.info.objective * (1 + 1e-9)
+
+
+def test_gil_is_released_while_solving():
+    model = _model("medium")
+    U, dp = synthetic_field(model.mesh)
+    s = GroupLassoSolver(
+        model, settings=SolverSettings(max_iter=2000, eps_rel=1e-14, eps_abs=1e-16)
+    )
+    s.update(U, dp)
+    counter = [0]
+    during: list[int] = []
+    done = threading.Event()
+
+    def work() -> None:
+        c0 = counter[0]
+        res = s.solve()
+        during.append(counter[0] - c0)
+        during.append(res.info.iterations)
+        done.set()
+
+    t = threading.Thread(target=work)
+    t.start()
+    while not done.is_set():
+        counter[0] += 1
+    t.join()
+    # While C++ iterated (hundreds of ms) this thread kept counting; holding the GIL would
+    # have frozen it for the whole solve.
+    assert during[1] == 2000
+    assert during[0] > 10_000
