@@ -415,7 +415,7 @@ class ReferenceSettings:
     max_height: float = 0.045
     z_tol: float = 0.002
     outlier_neighbors: int = 20
-    outlier_std_ratio: float = 1.2
+    outlier_std_ratio: float = 3.0
     cloud_stride: int = 2
     subtract_reference_lift: bool = True
     tight: bool = False
@@ -521,7 +521,10 @@ class ReferencePipeline:
         k = int(s.outlier_neighbors)
         if k > 0 and len(pts) > k + 1:
             dd, _ = cKDTree(pts).query(pts, k=k + 1)
-            md = dd[:, 1:].mean(axis=1)
+            # Sample spacing grows with camera distance; normalising by it keeps the far
+            # (sparser) part of the dome from being taken for outliers.
+            zc = np.maximum(self.camera.to_camera(pts)[:, 2], 1e-6)
+            md = dd[:, 1:].mean(axis=1) / zc
             pts = pts[md <= md.mean() + s.outlier_std_ratio * md.std()]
         return pts  # type: ignore[no-any-return]
 
