@@ -136,19 +136,26 @@ def _estimate_type() -> Any:
         return _FallbackEstimate
 
 
-def _make_estimate(**fields: Any) -> Any:
+def _make_estimate(cls: Any, **fields: Any) -> Any:
     try:
-        return _estimate_type()(**fields)
+        return cls(**fields)
     except TypeError:  # the core's Estimate changed shape: still return every field
         return _FallbackEstimate(**fields)
 
 
-def _info(**fields: Any) -> Any:
+def _info_type() -> Any:
     try:
         from bubble_rt.solver import SolverInfo
 
-        return SolverInfo(**fields)
-    except (ImportError, TypeError):
+        return SolverInfo
+    except ImportError:
+        return FrictionlessInfo
+
+
+def _make_info(cls: Any, **fields: Any) -> Any:
+    try:
+        return cls(**fields)
+    except TypeError:  # the core's SolverInfo changed shape
         return FrictionlessInfo(**fields)
 
 
@@ -400,6 +407,8 @@ class FrictionlessEstimator:
             warm_starting=True,
             verbose=False,
         )
+        self._Estimate = _estimate_type()
+        self._Info = _info_type()
         self.setup_time_ms = 1e3 * (time.perf_counter() - t_setup)
         self.last_info: Any = None
 
@@ -461,7 +470,8 @@ class FrictionlessEstimator:
         seen = np.zeros(self.n, dtype=bool)
         seen[self._ray_nodes[w > 0].ravel()] = True
         t3 = time.perf_counter()
-        info = _info(
+        info = _make_info(
+            self._Info,
             status=status,
             iterations=int(res.info.iter),
             primal_residual=float(res.info.prim_res),
@@ -473,6 +483,7 @@ class FrictionlessEstimator:
         self.last_info = info
         self.last_pv = float(x[2 * ni]) * self.pressure_scale
         return _make_estimate(
+            self._Estimate,
             node_forces=F,
             contact_pressure=contact_pressure,
             normal_pressure=p,
@@ -494,3 +505,58 @@ class FrictionlessEstimator:
         if frame.depth is None:
             raise ValueError("the frictionless baseline needs a depth image")
         return self.estimate_depth(frame.depth, frame.pressure_pa)
+
+
+def _timing_main(argv: list[str] | None = None) -> int:
+    """``python3 -m bubble_rt.baseline``: time per frame on a synthetic ray-cast sequence."""
+    import argparse
+    from types import SimpleNamespace
+
+    from bubble_rt.camera import Camera
+    from bubble_rt.mesh import Mesh
+    from bubble_rt.reference import render_depth
+
+    ap = argparse.ArgumentParser(description=_timing_main.__doc__)
+    ap.add_argument("--mesh", default="medium", help="coarse | medium | fine")
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--stride", type=int, default=FrictionlessSettings.pixel_stride)
+    args = ap.parse_args(argv)
+    mesh = Mesh.preset(args.mesh)
+    cam = Camera.d405()
+    V, T = mesh.vertices, mesh.triangles
+    normals = vertex_normals(V, T)
+    reference = SimpleNamespace(depth=render_depth(V, T, cam), pressure_pa=ATMOSPHERIC_PA + 3000)
+    t0 = time.perf_counter()
+    est = FrictionlessEstimator(
+        mesh, cam, reference, settings=FrictionlessSettings(pixel_stride=args.stride)
+    )
+    setup_ms = 1e3 * (time.perf_counter() - t0)
+    rng = np.random.default_rng(0)
+    depths = []
+    for k in range(args.frames):
+        # A press that slides along x and releases, plus depth noise.
+        amp = 4e-3 * np.sin(np.pi * (k + 0.5) / args.frames)
+        cx = -0.02 + 0.04 * k / max(args.frames - 1, 1)
+        c = np.exp(-((V[:, 0] - cx) ** 2 + V[:, 1] ** 2) / (2 * 0.008**2))
+        c[mesh.boundary] = 0
+        d = render_depth(V - amp * c[:, None] * normals, T, cam)
+        d += (rng.standard_normal(d.shape) * 3e-4).astype(np.float32) * (d > 0)
+        depths.append(d)
+    total, solve, iters = [], [], []
+    for d in depths:
+        t = time.perf_counter()
+        e = est.estimate_depth(d, reference.pressure_pa)
+        total.append(1e3 * (time.perf_counter() - t))
+        solve.append(e.timings_ms["solve"])
+        iters.append(e.info.iterations)
+    print(
+        f"frictionless baseline, {args.mesh} ({mesh.n_nodes} nodes), 640x480, stride "
+        f"{args.stride} ({est.n_rays} rays), {args.frames} frames: setup {setup_ms:.0f} ms, "
+        f"per frame p50 {np.median(total):.2f} ms p99 {np.percentile(total, 99):.2f} ms, "
+        f"solve p50 {np.median(solve):.2f} ms, iterations p50 {np.median(iters):.0f}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_timing_main())
