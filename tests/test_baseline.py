@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from functools import cache
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -158,3 +159,51 @@ def test_measured_pressure_mode_uses_pressure_change() -> None:
     e = est.estimate_depth(_reference_depth(), P_REF + 200.0)
     assert est.last_pv == pytest.approx(200.0, rel=1e-3)
     assert np.all(np.isfinite(e.net_force))
+
+
+# ----------------------------------------------------------------------------- real recording
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+def _real_setup(n_frames: int) -> tuple[Mesh, Camera, list[np.ndarray], list[float]]:
+    """Untouched Punyo frames: depth from the organised cloud, intrinsics fitted to it, and
+    the public implementation's mesh frame (camera rotated 25 degrees about y)."""
+    mesh = Mesh.load(SHARED / "reference-mesh-390.vtk")
+    depths, pressures = [], []
+    for i in range(n_frames):
+        pc = np.load(SHARED / "expand" / f"pc_{i}.npy").astype(np.float64)
+        z = pc[:, 2].reshape(480, 640)
+        depths.append(np.where((z > 0.03) & (z < 0.2), z, 0.0).astype(np.float32))
+        pressures.append(100.0 * float(np.load(SHARED / "expand" / f"pressure_{i}.npy")))
+        if i == 0:
+            ok = (pc[:, 2] > 0.03) & (pc[:, 2] < 0.2)
+            v, u = np.divmod(np.arange(len(pc)), 640)
+            one = np.ones(int(ok.sum()))
+            fx, cx = np.linalg.lstsq(
+                np.column_stack([pc[ok, 0] / pc[ok, 2], one]), u[ok], rcond=None
+            )[0]
+            fy, cy = np.linalg.lstsq(
+                np.column_stack([pc[ok, 1] / pc[ok, 2], one]), v[ok], rcond=None
+            )[0]
+    a = np.radians(25.0)
+    rot = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+    pose = np.eye(4)
+    pose[:3, :3] = rot.T
+    cam = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=640, height=480).with_pose(pose)
+    return mesh, cam, depths, pressures
+
+
+@pytest.mark.skipif(not SHARED.exists(), reason="../shared/data is not beside this clone")
+def test_real_untouched_frames_give_small_force_and_little_contact() -> None:
+    mesh, cam, depths, pressures = _real_setup(8)
+    stack = np.stack(depths[:5])
+    ref_depth = np.where((stack > 0).all(axis=0), stack.mean(axis=0), 0.0).astype(np.float32)
+    reference = SimpleNamespace(depth=ref_depth, pressure_pa=float(np.mean(pressures[:5])))
+    est = FrictionlessEstimator(mesh, cam, reference)
+    # Rest pressure about 1065.8 hPa absolute: gauge about 5.3 kPa.
+    assert 4000.0 < est.rest_gauge_pa < 6500.0
+    for d, p in zip(depths[5:], pressures[5:], strict=True):
+        e = est.estimate_depth(d, p)
+        assert e.info.status == "solved"
+        assert np.linalg.norm(e.net_force) < 0.5
+        assert e.contact.mean() < 0.02

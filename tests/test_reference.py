@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -247,3 +248,46 @@ def test_pipeline_on_synthetic_warp_returns_finite_outputs() -> None:
     same = pipe.process(rgb_ref, depth_ref, 101325.0)
     assert np.abs(same["raw_displacements"]).max() < 1e-6
     assert not same["contact"].any()
+
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+@pytest.mark.skipif(not SHARED.exists(), reason="../shared/data is not beside this clone")
+def test_pipeline_real_untouched_frame_gives_near_zero_force() -> None:
+    mesh = Mesh.load(SHARED / "reference-mesh-390.vtk")
+    pcs = [np.load(SHARED / "expand" / f"pc_{i}.npy").astype(np.float64) for i in (0, 1, 2, 6)]
+    rgbs = [np.load(SHARED / "expand" / f"rgb_{i}.npy") for i in (0, 1, 2, 6)]
+    pres = [100.0 * float(np.load(SHARED / "expand" / f"pressure_{i}.npy")) for i in (0, 1, 2, 6)]
+    pc = pcs[0]
+    ok = (pc[:, 2] > 0.03) & (pc[:, 2] < 0.2)
+    v, u = np.divmod(np.arange(len(pc)), 640)
+    one = np.ones(int(ok.sum()))
+    fx, cx = np.linalg.lstsq(np.column_stack([pc[ok, 0] / pc[ok, 2], one]), u[ok], rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.column_stack([pc[ok, 1] / pc[ok, 2], one]), v[ok], rcond=None)[0]
+    a = np.radians(25.0)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]]).T
+    cam = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=640, height=480).with_pose(pose)
+    depths = []
+    for p in pcs:
+        z = p[:, 2].reshape(480, 640)
+        depths.append(np.where((z > 0.03) & (z < 0.2), z, 0.0).astype(np.float32))
+    stack = np.stack(depths[:3])
+    ref_depth = np.where((stack > 0).all(axis=0), stack.mean(axis=0), 0.0).astype(np.float32)
+    ref_rgb = np.stack(rgbs[:3]).astype(np.float32).mean(axis=0).astype(np.uint8)
+    pipe = ref.ReferencePipeline(
+        mesh.vertices,
+        mesh.triangles,
+        mesh.boundary,
+        cam,
+        ref_rgb,
+        ref_depth,
+        float(np.mean(pres[:3])),
+        settings=ref.ReferenceSettings(cloud_stride=4),
+    )
+    out = pipe.process(rgbs[3], depths[3], pres[3])
+    # Real sensor noise moves nodes by a fraction of a millimetre; no contact, ~no force.
+    assert np.sqrt((out["raw_displacements"] ** 2).sum(axis=1).mean()) < 1e-3
+    assert np.linalg.norm(out["net_force"]) < 0.2
+    assert not out["contact"].any()

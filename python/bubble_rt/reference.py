@@ -397,8 +397,8 @@ class ReferenceSettings:
     """Settings of the paper's per-frame pipeline (public implementation's values).
 
     Farneback: pyr_scale 0.5, levels 30, winsize 50, iterations 5, poly_n 7, poly_sigma 1.5,
-    Gaussian window, grey image. Point-cloud filter: keep points whose mesh-frame height is in
-    [-z_tol, max_height] (m) and drop statistical outliers (mean distance to ``outlier_neighbors``
+    Gaussian window, grey image. Point-cloud filter: keep points whose mesh-frame height above
+    the mesh's lowest point (the rim plane) is in [-z_tol, max_height + z_tol] (m) and drop statistical outliers (mean distance to ``outlier_neighbors``
     neighbours above mean + ``outlier_std_ratio`` std; the public code uses Open3D with 200
     neighbours; 0 disables). ``cloud_stride`` subsamples the depth image before lifting
     (1 = every pixel, as the public code; larger = faster Delaunay in griddata).
@@ -516,7 +516,9 @@ class ReferencePipeline:
         ok = np.isfinite(d) & (d > 0)
         uv = np.column_stack([u.ravel()[ok], v.ravel()[ok]]).astype(np.float64)
         pts = self.camera.backproject(uv, d[ok])
-        keep = (pts[:, 2] > -s.z_tol) & (pts[:, 2] < s.max_height + s.z_tol)
+        # Heights are measured from the mesh's lowest point (the rim plane in the mesh frame).
+        z0 = float(self.vertices[:, 2].min())
+        keep = (pts[:, 2] > z0 - s.z_tol) & (pts[:, 2] < z0 + s.max_height + s.z_tol)
         pts = pts[keep]
         k = int(s.outlier_neighbors)
         if k > 0 and len(pts) > k + 1:
