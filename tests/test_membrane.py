@@ -91,6 +91,26 @@ def test_flat_mesh_uniform_stretch_matches_plane_stress(eps):
     assert energy == pytest.approx(analytic, rel=1e-9)
 
 
+@pytest.mark.parametrize("name", ["coarse", "medium", "fine"])
+def test_stiffness_areas_normals_equal_reference(name):
+    from bubble_rt import reference
+
+    mesh = Mesh.preset(name)
+    mat = Material()
+    m = _model(name)
+    K_ref = reference.stiffness_matrix(mesh.vertices, mesh.triangles, mat.E, mat.nu, mat.thickness)
+    diff = abs(m.stiffness - K_ref).max()
+    assert diff <= 1e-10 * abs(K_ref).max()
+    assert np.allclose(m.areas, reference.lumped_areas(mesh.vertices, mesh.triangles), rtol=1e-12)
+    assert np.allclose(
+        m.normals, reference.vertex_normals(mesh.vertices, mesh.triangles), atol=1e-12
+    )
+    rng = np.random.default_rng(0)
+    U = rng.normal(scale=1e-4, size=(mesh.n_nodes, 3))
+    F_ref = reference.external_forces(K_ref, U, 123.0, m.areas, m.normals)
+    assert np.allclose(m.external_forces(U, 123.0), F_ref, rtol=1e-9, atol=1e-12)
+
+
 def test_areas_sum_to_surface_area():
     m = _model()
     V, T = m.mesh.vertices, m.mesh.triangles
