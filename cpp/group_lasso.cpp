@@ -17,6 +17,48 @@ double ms_since(Clock::time_point t0) {
 // rho moves on a grid of quarter decades so that factorizations can be cached and reused.
 constexpr double kRhoGridPerDecade = 4.0;
 constexpr int kMaxCachedFactors = 12;
+
+// Type-II Anderson acceleration of a fixed-point map u -> G(u) (Walker & Ni), with a small
+// Tikhonov term and a restart whenever the fixed-point residual jumps.
+class Anderson {
+ public:
+  Anderson(int mem, Eigen::Index dim) : mem_(mem), dF_(dim, mem), dG_(dim, mem) {}
+  void reset() {
+    count_ = 0;
+    have_prev_ = false;
+  }
+  // u: the input of G; g: G(u) on entry, the accelerated next iterate on exit.
+  void step(const Eigen::VectorXd& u, Eigen::VectorXd& g) {
+    f_ = g - u;
+    const double fn = f_.squaredNorm();
+    if (have_prev_ && fn > 4.0 * fprev_norm_) count_ = 0;  // diverging: restart the memory
+    if (have_prev_) {
+      const int col = static_cast<int>(count_ % mem_);
+      dF_.col(col) = f_ - f_prev_;
+      dG_.col(col) = g - g_prev_;
+      ++count_;
+    }
+    f_prev_ = f_;
+    g_prev_ = g;
+    fprev_norm_ = fn;
+    have_prev_ = true;
+    const int k = static_cast<int>(std::min<long>(count_, mem_));
+    if (k == 0) return;
+    Eigen::MatrixXd H = dF_.leftCols(k).transpose() * dF_.leftCols(k);
+    H.diagonal().array() += 1e-10 * H.diagonal().maxCoeff() + 1e-300;
+    const Eigen::VectorXd gamma = H.ldlt().solve(dF_.leftCols(k).transpose() * f_);
+    if (!gamma.allFinite()) return;
+    g.noalias() -= dG_.leftCols(k) * gamma;
+  }
+
+ private:
+  int mem_;
+  long count_ = 0;
+  bool have_prev_ = false;
+  double fprev_norm_ = 0;
+  Eigen::MatrixXd dF_, dG_;
+  Eigen::VectorXd f_, f_prev_, g_prev_;
+};
 }  // namespace
 
 void SolverSettings::validate() const {
@@ -31,6 +73,7 @@ void SolverSettings::validate() const {
   require(check_interval >= 1, "check_interval must be >= 1");
   require(std::isfinite(time_limit) && time_limit >= 0, "time_limit must be >= 0 (0 = none)");
   require(scaling_iter >= 0, "scaling_iter must be >= 0");
+  require(anderson_memory >= 0 && anderson_memory <= 50, "anderson_memory must be in 0..50");
 }
 
 std::string to_string(SolverStatus s) {
@@ -284,7 +327,14 @@ SolverResult GroupLassoSolver::solve() {
   info.status = SolverStatus::max_iter_reached;
   int k = 0;
   double pobj = 0, gap = 0, rp = 0, rd = 0;
+  const int mem = settings_.anderson_memory;
+  Anderson aa(std::max(mem, 1), 2 * m);
+  Eigen::VectorXd u(2 * m), g(2 * m);
   for (k = 1; k <= settings_.max_iter; ++k) {
+    if (mem > 0) {
+      u.head(m) = zh_;
+      u.tail(m) = yh_ / rho;
+    }
     tmp.noalias() = rho * zh_ - yh_;
     rhs.noalias() = AhT_ * tmp;
     rhs += settings_.sigma * xh_;
@@ -296,6 +346,13 @@ SolverResult GroupLassoSolver::solve() {
     prox(v, rho, zn);
     yh_ += rho * (zr - zn);
     zh_.swap(zn);
+    if (mem > 0) {
+      g.head(m) = zh_;
+      g.tail(m) = yh_ / rho;
+      aa.step(u, g);
+      zh_ = g.head(m);
+      yh_ = rho * g.tail(m);
+    }
 
     const bool last = k == settings_.max_iter;
     if (k % settings_.check_interval != 0 && !last) continue;
@@ -349,6 +406,7 @@ SolverResult GroupLassoSolver::solve() {
           rho_idx_ = std::clamp(rho_idx_, -80, 80);
           ldlt = &factor(rho_idx_, &info.factorizations);
           rho = rho_of(rho_idx_);
+          aa.reset();
         }
       }
     }

@@ -8,9 +8,14 @@
 //   minimise  c ||x||^2 + sum_i w_i ||(A x + b)_i||,   c = k_u / N,
 // split OSQP-style as z = A x: the x-update is a sparse solve with (P + sigma I + rho A^T A)
 // (factored once per rho), the z-update a block soft-threshold, plus over-relaxation.
-// The data are equilibrated (Ruiz, per-node blocks, plus a cost scale) so that rho and the
-// iteration count do not depend on units or mesh size; rho adapts as in OSQP and every rho
-// ever used keeps its factorization, so switching back is free.
+// Scaling: the cost is multiplied by s = 1 / (2 c) (the quadratic becomes ||x||^2 / 2 in
+// metres; optional per-node Ruiz equilibration on top). rho is set from the data, not fixed:
+// rho = settings.rho * mean(scaled weights) / rms(nodal force at dU = 0), which makes the
+// ADMM iterates identical under a change of units (m <-> mm, N <-> mN). rho lives on a grid
+// of quarter decades; each factorization is cached, so returning to a rho is free, and rho
+// is re-set only when the data rule moves it by more than adaptive_rho_tolerance.
+// Optional in-solve OSQP residual balancing (adaptive_rho) and Anderson acceleration of the
+// (z, y / rho) fixed-point map.
 //
 // Termination uses the duality gap: every dual iterate is dual feasible (||y_i|| <= w_i), so
 // objective(x) - dual(y) bounds the suboptimality of the returned x. "solved" means
@@ -18,6 +23,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Dense>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <map>
@@ -29,7 +35,7 @@
 namespace bubble {
 
 struct SolverSettings {
-  double rho = 0.1;                    // initial ADMM step (scaled problem)
+  double rho = 100.0;                  // multiplier of the data-driven rho (see above)
   double sigma = 1e-6;                 // proximal regularisation of the x-update
   double alpha = 1.6;                  // over-relaxation in (0, 2)
   bool adaptive_rho = false;           // rebalance rho from the residual ratio (OSQP rule)
@@ -42,6 +48,7 @@ struct SolverSettings {
   double time_limit = 0.0;  // seconds per solve, 0 = none
   int scaling_iter = 0;     // Ruiz equilibration passes, 0 = no scaling
   bool warm_start = true;   // start each solve from the previous solution
+  int anderson_memory = 5;  // Anderson acceleration memory (0 = off)
   void validate() const;    // throws InputError
 };
 

@@ -390,3 +390,19 @@ def test_gil_is_released_while_solving():
     # have frozen it for the whole solve.
     assert during[1] == 2000
     assert during[0] > 10_000
+
+
+def test_iterations_do_not_depend_on_units():
+    # The same problem in millimetres (N/mm^2 for E and dp, 1/mm^2 for k_u) runs the same
+    # iterations and gives the same answer, because rho follows the data.
+    mesh = Mesh.preset("coarse")
+    U, dp = synthetic_field(mesh)
+    mat = Material()
+    si = _solve(MembraneModel(mesh, mat), U, dp)
+    mesh_mm = Mesh(mesh.vertices * 1e3, mesh.triangles, mesh.boundary)
+    mat_mm = Material(E=mat.E * 1e-6, nu=mat.nu, thickness=mat.thickness * 1e3)
+    mm = _solve(MembraneModel(mesh_mm, mat_mm), U * 1e3, dp * 1e-6, k_u=K_U * 1e-6)
+    assert mm.info.status == si.info.status == "solved"
+    assert abs(mm.info.iterations - si.info.iterations) <= 5
+    assert mm.info.objective == pytest.approx(si.info.objective, rel=1e-3)
+    assert np.allclose(mm.dU * 1e-3, si.dU, atol=1e-3 * np.abs(si.dU).max())

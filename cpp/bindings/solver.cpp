@@ -39,6 +39,7 @@ void bind_solver(py::module_& m) {
       .def_readwrite("time_limit", &S::time_limit)
       .def_readwrite("scaling_iter", &S::scaling_iter)
       .def_readwrite("warm_start", &S::warm_start)
+      .def_readwrite("anderson_memory", &S::anderson_memory)
       .def("validate", &S::validate);
 
   using I = bubble::SolverInfo;

@@ -8,7 +8,9 @@ Solves, per frame,
 with w_i = k_f |rim| / N on the rim and k_f elsewhere. The rim is exact (its dofs are
 eliminated). The C++ core runs an OSQP-shaped ADMM: split z = F_ext, x-update a sparse LDLT
 solve factored once per rho (factorizations are cached), z-update a block soft-threshold,
-over-relaxation, warm start from the previous frame's corrected displacement and multipliers.
+over-relaxation, Anderson acceleration, warm start from the previous frame's corrected
+displacement and multipliers. rho follows the data (weights over the frame's force scale),
+so the iterations are unchanged by a change of units.
 Termination is certified: every dual iterate is feasible, so the duality gap bounds how far
 the returned objective is above the optimum.
 """
@@ -50,9 +52,11 @@ class SolverSettings:
         time_limit: seconds per solve, 0 = none ("time_limit_reached" status).
         scaling_iter: Ruiz equilibration passes (0 = a scalar non-dimensionalisation only).
         warm_start: start each solve from the previous frame's solution.
+        anderson_memory: Anderson acceleration memory on the ADMM fixed-point map (0 = off);
+            restarts automatically when the fixed-point residual jumps.
     """
 
-    rho: float = 30.0
+    rho: float = 100.0
     sigma: float = 1e-6
     alpha: float = 1.6
     adaptive_rho: bool = False
@@ -65,6 +69,7 @@ class SolverSettings:
     time_limit: float = 0.0
     scaling_iter: int = 0
     warm_start: bool = True
+    anderson_memory: int = 5
 
     def __post_init__(self) -> None:
         try:
