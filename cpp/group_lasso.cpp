@@ -186,6 +186,7 @@ void GroupLassoSolver::setup() {
   AhT_ = Ah_.transpose();
   AhT_.makeCompressed();
   AtA_ = (AhT_ * Ah_).pruned();
+  Ab_ = BlockMatrix3(Ah_);
   AtA_.makeCompressed();
   // Cost scale: the mean of P's diagonal becomes one (OSQP's rule without a linear term).
   Pd_ = 2 * c_ * D_.cwiseAbs2();
@@ -205,7 +206,7 @@ void GroupLassoSolver::setup() {
 
 double GroupLassoSolver::rho_of(int idx) const { return std::pow(10.0, idx / kRhoGridPerDecade); }
 
-const Eigen::SimplicialLDLT<SparseMatrixd>& GroupLassoSolver::factor(int idx, int* count) {
+const BlockLDLT& GroupLassoSolver::factor(int idx, int* count) {
   auto it = factors_.find(idx);
   if (it != factors_.end()) return *it->second;
   if (static_cast<int>(factors_.size()) >= kMaxCachedFactors) {
@@ -217,9 +218,7 @@ const Eigen::SimplicialLDLT<SparseMatrixd>& GroupLassoSolver::factor(int idx, in
   }
   SparseMatrixd M = AtA_ * rho_of(idx);
   for (int j = 0; j < M.cols(); ++j) M.coeffRef(j, j) += Pd_(j) + settings_.sigma;
-  auto f = std::make_unique<Eigen::SimplicialLDLT<SparseMatrixd>>();
-  f->compute(M);
-  require(f->info() == Eigen::Success, "factorisation of the ADMM system failed");
+  auto f = std::make_unique<BlockLDLT>(M);
   ++*count;
   return *(factors_[idx] = std::move(f));
 }
@@ -322,7 +321,7 @@ SolverResult GroupLassoSolver::solve() {
       }
     }
   }
-  const Eigen::SimplicialLDLT<SparseMatrixd>* ldlt = &factor(rho_idx_, &info.factorizations);
+  const BlockLDLT* ldlt = &factor(rho_idx_, &info.factorizations);
   double rho = rho_of(rho_idx_);
   info.status = SolverStatus::max_iter_reached;
   int k = 0;
@@ -336,10 +335,10 @@ SolverResult GroupLassoSolver::solve() {
       u.tail(m) = yh_ / rho;
     }
     tmp.noalias() = rho * zh_ - yh_;
-    rhs.noalias() = AhT_ * tmp;
+    Ab_.multiply_transposed(tmp, rhs);
     rhs += settings_.sigma * xh_;
-    xt = ldlt->solve(rhs);
-    zt.noalias() = Ah_ * xt;
+    ldlt->solve(rhs, xt);
+    Ab_.multiply(xt, zt);
     xh_ = alpha * xt + (1 - alpha) * xh_;
     zr = alpha * zt + (1 - alpha) * zh_;
     v = zr + yh_ / rho;
@@ -356,8 +355,8 @@ SolverResult GroupLassoSolver::solve() {
 
     const bool last = k == settings_.max_iter;
     if (k % settings_.check_interval != 0 && !last) continue;
-    Ax.noalias() = Ah_ * xh_;
-    ATy.noalias() = AhT_ * yh_;
+    Ab_.multiply(xh_, Ax);
+    Ab_.multiply_transposed(yh_, ATy);
     // Objective at x (unscaled, unitless).
     pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
     for (int i = 0; i < n_; ++i)
@@ -372,7 +371,8 @@ SolverResult GroupLassoSolver::solve() {
         projected = true;
       }
     }
-    Eigen::VectorXd aty = projected ? Eigen::VectorXd(AhT_ * yp) : ATy;
+    Eigen::VectorXd aty = ATy;
+    if (projected) Ab_.multiply_transposed(yp, aty);
     const double dual_h = yp.dot(bh_) - 0.5 * aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
     const double dobj = dual_h / s_ + rim_const_;
     gap = std::max(pobj - dobj, 0.0);

@@ -30,6 +30,8 @@
 #include <memory>
 #include <string>
 
+#include "block_ldlt.h"
+#include "block_matrix.h"
 #include "membrane.h"
 
 namespace bubble {
@@ -101,7 +103,7 @@ class GroupLassoSolver {
 
  private:
   void setup();  // scaling + A^T A + first factorization
-  const Eigen::SimplicialLDLT<SparseMatrixd>& factor(int rho_index, int* count);
+  const BlockLDLT& factor(int rho_index, int* count);
   double rho_of(int idx) const;
   void prox(const Eigen::VectorXd& v, double rho, Eigen::VectorXd& out) const;
 
@@ -119,8 +121,9 @@ class GroupLassoSolver {
   Eigen::VectorXd wh_;                   // s w_i / E_i per node
   double s_ = 1;
   SparseMatrixd Ah_, AhT_, AtA_;
+  BlockMatrix3 Ab_;     // Ah_ in 3 x 3 blocks, for the per-iteration products
   Eigen::VectorXd Pd_;  // diagonal of the scaled P = 2 s c D^2
-  std::map<int, std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixd>>> factors_;
+  std::map<int, std::unique_ptr<BlockLDLT>> factors_;
   int rho_idx_ = 0;
   bool rho_set_ = false;
 
