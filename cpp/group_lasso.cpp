@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include "errors.h"
@@ -306,7 +307,8 @@ SolverResult GroupLassoSolver::solve() {
   zh_ = Ah_ * xh_;
 
   const double alpha = settings_.alpha;
-  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), yp(m), tmp(m);
+  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), yp(m), tmp(m),
+      aty(nfd);
   // rho from the data: the ratio of the dual scale (the weights) to the force scale of the
   // frame (rms nodal force at dU = 0). Refactor only when it moves by more than the tolerance.
   {
@@ -361,19 +363,36 @@ SolverResult GroupLassoSolver::solve() {
     pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
     for (int i = 0; i < n_; ++i)
       pobj += w_(i) * (Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i)).norm() * Einv_(3 * i);
-    // Dual bound from y projected on its feasible balls.
-    yp = yh_;
-    bool projected = false;
-    for (int i = 0; i < n_; ++i) {
-      const double nr = yp.segment<3>(3 * i).norm();
-      if (nr > wh_(i)) {
-        yp.segment<3>(3 * i) *= wh_(i) / nr;
-        projected = true;
+    // Dual bound: the best of two feasible multipliers, each scaled optimally along its ray.
+    // (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where x
+    // leaves a force replaced by w_i F_i / ||F_i|| (the multiplier x itself asks for).
+    double dual_h = -std::numeric_limits<double>::infinity();
+    for (int cand = 0; cand < 2; ++cand) {
+      yp = yh_;
+      for (int i = 0; i < n_; ++i) {
+        if (cand == 1) {
+          const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+          const double fn = f.norm();
+          if (fn > 1e-9 * wh_(i) / rho) {
+            yp.segment<3>(3 * i) = wh_(i) / fn * f;
+            continue;
+          }
+        }
+        const double nr = yp.segment<3>(3 * i).norm();
+        if (nr > wh_(i)) yp.segment<3>(3 * i) *= wh_(i) / nr;
       }
+      Ab_.multiply_transposed(yp, aty);
+      const double lin = yp.dot(bh_);
+      const double quad = aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
+      double tmax = std::numeric_limits<double>::infinity();
+      for (int i = 0; i < n_; ++i) {
+        const double nr = yp.segment<3>(3 * i).norm();
+        if (nr > 0) tmax = std::min(tmax, wh_(i) / nr);
+      }
+      double t = quad > 0 ? lin / quad : (lin > 0 ? tmax : 0.0);
+      t = std::clamp(t, 0.0, std::isfinite(tmax) ? tmax : 1.0);
+      dual_h = std::max(dual_h, t * lin - 0.5 * t * t * quad);
     }
-    Eigen::VectorXd aty = ATy;
-    if (projected) Ab_.multiply_transposed(yp, aty);
-    const double dual_h = yp.dot(bh_) - 0.5 * aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
     const double dobj = dual_h / s_ + rim_const_;
     gap = std::max(pobj - dobj, 0.0);
     rp = (Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();

@@ -44,7 +44,7 @@ struct SolverSettings {
   double adaptive_rho_tolerance = 5.;  // change rho only when it moves by more than this factor
   int adaptive_rho_interval = 25;      // iterations between rho updates
   double eps_abs = 1e-6;               // absolute duality-gap tolerance (objective is unitless)
-  double eps_rel = 5e-4;               // relative duality-gap tolerance
+  double eps_rel = 8e-4;               // relative duality-gap tolerance
   int max_iter = 4000;
   int check_interval = 5;   // iterations between termination checks
   double time_limit = 0.0;  // seconds per solve, 0 = none

@@ -63,7 +63,7 @@ class SolverSettings:
     adaptive_rho_tolerance: float = 5.0
     adaptive_rho_interval: int = 25
     eps_abs: float = 1e-6
-    eps_rel: float = 5e-4
+    eps_rel: float = 8e-4
     max_iter: int = 4000
     check_interval: int = 5
     time_limit: float = 0.0
@@ -80,7 +80,7 @@ class SolverSettings:
     @classmethod
     def tight(cls, **changes: object) -> SolverSettings:
         """Settings for a relative objective gap of about 1e-5."""
-        base = cls(eps_rel=5e-6, eps_abs=1e-8, max_iter=20000)
+        base = cls(eps_rel=8e-6, eps_abs=1e-8, max_iter=20000)
         return replace(base, **changes)  # type: ignore[arg-type]
 
     def _to_core(self):  # noqa: ANN202 - private binding type
