@@ -66,7 +66,7 @@ struct SolverInfo {
   double duality_gap = 0;      // objective - best dual bound (unitless, >= 0)
   double rho = 0;              // rho in use at the end (scaled problem)
   int factorizations = 0;      // factorizations computed during this solve
-  double setup_time_ms = 0;    // time of the last setup / refactorisation triggered by setup
+  double setup_time_ms = 0;    // factorization time spent inside this solve (0 when cached)
   double solve_time_ms = 0;
 };
 
@@ -142,6 +142,7 @@ class GroupLassoSolver {
   SolverResult last_;
   Eigen::VectorXd xh_, zh_, yh_;
   double setup_ms_ = 0;
+  double factor_ms_ = 0;
 };
 
 }  // namespace bubble

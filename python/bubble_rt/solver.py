@@ -104,7 +104,8 @@ class SolverInfo:
         objective: objective at the returned dU (dimensionless).
         duality_gap: objective minus the best dual bound (>= 0).
         rho: ADMM step in use (non-dimensional problem).
-        setup_time_ms: time of the last setup (scaling + factorization).
+        setup_time_ms: factorization time spent inside this solve (0 when rho's factor was
+            cached; the first solve factors at the data-driven rho).
         solve_time_ms: time of this solve in C++.
     """
 
