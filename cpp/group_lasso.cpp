@@ -310,8 +310,9 @@ SolverResult GroupLassoSolver::solve() {
   zh_ = Ah_ * xh_;
 
   const double alpha = settings_.alpha;
-  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), yp(m), tmp(m),
-      aty(nfd);
+  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), tmp(m);
+  Eigen::VectorXd ya(m), yb(m), ybest(m), dy(m), atya(nfd), atyb(nfd), atybest(nfd), da(nfd);
+  bool have_best = false;
   // rho from the data: the ratio of the dual scale (the weights) to the force scale of the
   // frame (rms nodal force at dU = 0). Refactor only when it moves by more than the tolerance.
   {
@@ -366,36 +367,56 @@ SolverResult GroupLassoSolver::solve() {
     pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
     for (int i = 0; i < n_; ++i)
       pobj += w_(i) * (Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i)).norm() * Einv_(3 * i);
-    // Dual bound: the best of two feasible multipliers, each scaled optimally along its ray.
-    // (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where x
-    // leaves a force replaced by w_i F_i / ||F_i|| (the multiplier x itself asks for).
-    double dual_h = -std::numeric_limits<double>::infinity();
+    // Dual bound d(y) = y.b - |A^T y|^2_{P^-1} / 2 at a feasible y (||y_i|| <= w_i), improved
+    // cheaply: (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where
+    // x leaves a force replaced by w_i F_i / ||F_i|| (the multiplier x asks for); the best point
+    // on the segment a-b, then on the segment to the best multiplier of the previous check, then
+    // the best scaling along the ray. All these stay feasible and need two products with A^T.
     for (int cand = 0; cand < 2; ++cand) {
-      yp = yh_;
+      Eigen::VectorXd& y = cand == 0 ? ya : yb;
+      y = yh_;
       for (int i = 0; i < n_; ++i) {
         if (cand == 1) {
           const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
           const double fn = f.norm();
           if (fn > 1e-9 * wh_(i) / rho) {
-            yp.segment<3>(3 * i) = wh_(i) / fn * f;
+            y.segment<3>(3 * i) = wh_(i) / fn * f;
             continue;
           }
         }
-        const double nr = yp.segment<3>(3 * i).norm();
-        if (nr > wh_(i)) yp.segment<3>(3 * i) *= wh_(i) / nr;
+        const double nr = y.segment<3>(3 * i).norm();
+        if (nr > wh_(i)) y.segment<3>(3 * i) *= wh_(i) / nr;
       }
-      Ab_.multiply_transposed(yp, aty);
-      const double lin = yp.dot(bh_);
-      const double quad = aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
+      Ab_.multiply_transposed(y, cand == 0 ? atya : atyb);
+    }
+    auto segment_max = [&](Eigen::VectorXd& y1, Eigen::VectorXd& a1, const Eigen::VectorXd& y2,
+                           const Eigen::VectorXd& a2) {
+      dy = y2 - y1;
+      da = a2 - a1;
+      const double dd = da.cwiseAbs2().cwiseQuotient(Pd_).sum();
+      if (!(dd > 0)) return;
+      const double t =
+          std::clamp((dy.dot(bh_) - a1.cwiseProduct(da).cwiseQuotient(Pd_).sum()) / dd, 0.0, 1.0);
+      y1 += t * dy;
+      a1 += t * da;
+    };
+    segment_max(ya, atya, yb, atyb);
+    if (have_best) segment_max(ya, atya, ybest, atybest);
+    {
+      const double lin = ya.dot(bh_);
+      const double quad = atya.cwiseAbs2().cwiseQuotient(Pd_).sum();
       double tmax = std::numeric_limits<double>::infinity();
       for (int i = 0; i < n_; ++i) {
-        const double nr = yp.segment<3>(3 * i).norm();
+        const double nr = ya.segment<3>(3 * i).norm();
         if (nr > 0) tmax = std::min(tmax, wh_(i) / nr);
       }
       double t = quad > 0 ? lin / quad : (lin > 0 ? tmax : 0.0);
       t = std::clamp(t, 0.0, std::isfinite(tmax) ? tmax : 1.0);
-      dual_h = std::max(dual_h, t * lin - 0.5 * t * t * quad);
+      ybest = t * ya;
+      atybest = t * atya;
+      have_best = true;
     }
+    const double dual_h = ybest.dot(bh_) - 0.5 * atybest.cwiseAbs2().cwiseQuotient(Pd_).sum();
     const double dobj = dual_h / s_ + rim_const_;
     gap = std::max(pobj - dobj, 0.0);
     rp = (Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
