@@ -23,7 +23,8 @@ constexpr int kMaxCachedFactors = 12;
 // Tikhonov term and a restart whenever the fixed-point residual jumps.
 class Anderson {
  public:
-  Anderson(int mem, Eigen::Index dim) : mem_(mem), dF_(dim, mem), dG_(dim, mem) {}
+  Anderson(int mem, Eigen::Index dim)
+      : mem_(mem), dF_(dim, mem), dG_(dim, mem), H_(Eigen::MatrixXd::Zero(mem, mem)) {}
   void reset() {
     count_ = 0;
     have_prev_ = false;
@@ -38,6 +39,9 @@ class Anderson {
       dF_.col(col) = f_ - f_prev_;
       dG_.col(col) = g - g_prev_;
       ++count_;
+      // Keep the Gram matrix of the stored differences up to date (one new row/column).
+      const int k = static_cast<int>(std::min<long>(count_, mem_));
+      for (int j = 0; j < k; ++j) H_(col, j) = H_(j, col) = dF_.col(col).dot(dF_.col(j));
     }
     f_prev_ = f_;
     g_prev_ = g;
@@ -45,9 +49,10 @@ class Anderson {
     have_prev_ = true;
     const int k = static_cast<int>(std::min<long>(count_, mem_));
     if (k == 0) return;
-    Eigen::MatrixXd H = dF_.leftCols(k).transpose() * dF_.leftCols(k);
+    Eigen::MatrixXd H = H_.topLeftCorner(k, k);
     H.diagonal().array() += 1e-10 * H.diagonal().maxCoeff() + 1e-300;
-    const Eigen::VectorXd gamma = H.ldlt().solve(dF_.leftCols(k).transpose() * f_);
+    rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
+    const Eigen::VectorXd gamma = H.ldlt().solve(rhs_);
     if (!gamma.allFinite()) return;
     g.noalias() -= dG_.leftCols(k) * gamma;
   }
@@ -57,8 +62,8 @@ class Anderson {
   long count_ = 0;
   bool have_prev_ = false;
   double fprev_norm_ = 0;
-  Eigen::MatrixXd dF_, dG_;
-  Eigen::VectorXd f_, f_prev_, g_prev_;
+  Eigen::MatrixXd dF_, dG_, H_;
+  Eigen::VectorXd f_, f_prev_, g_prev_, rhs_;
 };
 }  // namespace
 
