@@ -432,3 +432,12 @@ def test_solution_properties_hold_for_random_contacts(depth, noise, x, y, kind, 
     _assert_honest(res, model, U, dp)
     assert np.all((U + res.dU)[model.mesh.boundary] == 0.0)
     assert res.info.objective == pytest.approx(objective(model, U, dp, res.dU), rel=1e-9, abs=1e-12)
+
+
+def test_overflowing_data_reports_non_finite_input():
+    # Finite inputs whose forces overflow double precision: a status, not an exception.
+    model = MembraneModel(Mesh.preset("coarse"), Material(E=1e300))
+    U = np.full((model.n_nodes, 3), 1e12)
+    res = _solve(model, U, 0.0)
+    assert res.info.status == "non_finite_input"
+    assert np.isfinite(res.dU).all()

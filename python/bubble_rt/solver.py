@@ -47,7 +47,7 @@ class SolverSettings:
         eps_abs: absolute duality-gap tolerance (the objective is dimensionless).
         eps_rel: relative duality-gap tolerance: "solved" guarantees
             objective - optimum <= eps_abs + eps_rel * objective.
-        max_iter: iteration cap ("max_iter_reached" status, best iterate returned).
+        max_iter: iteration cap ("max_iter_reached" status, the last iterate is returned).
         check_interval: iterations between termination checks.
         time_limit: seconds per solve, 0 = none ("time_limit_reached" status).
         scaling_iter: Ruiz equilibration passes (0 = a scalar non-dimensionalisation only).
