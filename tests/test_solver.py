@@ -441,3 +441,23 @@ def test_overflowing_data_reports_non_finite_input():
     res = _solve(model, U, 0.0)
     assert res.info.status == "non_finite_input"
     assert np.isfinite(res.dU).all()
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        dict(scaling_iter=10),
+        dict(adaptive_rho=True),
+        dict(anderson_memory=0),
+        dict(alpha=1.0),
+        dict(sigma=0.0),
+    ],
+    ids=["ruiz", "adaptive_rho", "no_anderson", "no_relaxation", "no_sigma"],
+)
+def test_optional_algorithm_paths_reach_the_reference(changes):
+    model = _model("coarse")
+    U, dp = synthetic_field(model.mesh)
+    _, obj_ref = _reference("coarse", "indent")
+    res = _solve(model, U, dp, SolverSettings(**changes))
+    assert res.info.status == "solved"
+    assert -1e-7 <= (res.info.objective - obj_ref) / obj_ref <= 1e-3
