@@ -291,3 +291,19 @@ def test_pipeline_real_untouched_frame_gives_near_zero_force() -> None:
     assert np.sqrt((out["raw_displacements"] ** 2).sum(axis=1).mean()) < 1e-3
     assert np.linalg.norm(out["net_force"]) < 0.2
     assert not out["contact"].any()
+
+
+def test_reconfigure_weights_matches_fresh_problem() -> None:
+    m = _mesh()
+    U = _indentation(m, 3e-3, noise=1e-4, seed=5)
+    pb = ref.GroupLassoProblem(m.vertices, m.triangles, m.boundary, E, NU, THICK)
+    pb.reconfigure(k_f=1.0, k_u=1e5)
+    _, obj = pb.solve(U, 10.0, tight=True)
+    fresh = ref.GroupLassoProblem(
+        m.vertices, m.triangles, m.boundary, E, NU, THICK, k_f=1.0, k_u=1e5
+    )
+    _, obj_fresh = fresh.solve(U, 10.0, tight=True)
+    assert obj == pytest.approx(obj_fresh, rel=1e-7)
+    assert obj != pytest.approx(_problem().solve(U, 10.0, tight=True)[1], rel=1e-3)
+    with pytest.raises(ValueError, match="k_f"):
+        pb.reconfigure(k_f=-1.0)
