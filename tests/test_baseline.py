@@ -110,6 +110,37 @@ def test_inward_indentation_gives_inward_force_and_contact_at_indent() -> None:
     assert -6e-3 < u_top < -2e-3
 
 
+def test_recovers_pressure_generated_by_its_own_forward_model() -> None:
+    """Pressure patch -> equilibrium + gas displacement -> ray-cast depth -> estimate."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    est = _estimator()
+    m = _mesh()
+    interior, a = est.interior, est.areas
+    L = cotangent_laplacian(m.vertices, m.triangles)[interior][:, interior]
+    V = m.vertices
+    pc = -2500.0 * np.exp(-((V[:, 0] - 0.01) ** 2 + V[:, 1] ** 2) / (2 * 0.006**2))
+    pc[m.boundary] = 0.0
+    gas = est.P0 / est.V0
+    system = sp.bmat(
+        [
+            [est.T0 * L, sp.csr_matrix(-a[interior][:, None])],
+            [sp.csr_matrix(gas * a[interior][None, :]), sp.csr_matrix([[1.0]])],
+        ]
+    ).tocsc()
+    sol = spl.spsolve(system, np.concatenate([a[interior] * pc[interior], [0.0]]))
+    u = np.zeros(m.n_nodes)
+    u[interior] = sol[:-1]
+    assert u.min() < -1e-3  # a real dent, about 1.6 mm
+    depth = ref.render_depth(V + u[:, None] * est.normals, m.triangles, _camera())
+    e = est.estimate_depth(depth, P_REF)
+    f_true = ((a * pc)[:, None] * est.normals)[m.interior].sum(axis=0)
+    assert np.linalg.norm(e.net_force - f_true) < 0.05 * np.linalg.norm(f_true)
+    assert est.last_pv == pytest.approx(sol[-1], rel=0.05)
+    assert np.array_equal(e.contact, -pc > 2000.0)
+
+
 def test_contact_pressure_nonnegative_and_normal() -> None:
     est = _estimator()
     e = est.process(Frame(rgb=None, depth=_indented_depth(), pressure_pa=P_REF))
