@@ -566,6 +566,12 @@ class ReferencePipeline:
             out[bad] = np.asarray(griddata(uv, pts, query_uv[bad], method="nearest"))
         return out
 
+    def process_frame(self, frame: Any) -> dict[str, Any]:
+        """``process`` on a ``Frame`` (needs ``rgb``, ``depth`` and ``pressure_pa``)."""
+        if frame.rgb is None or frame.depth is None:
+            raise ValueError("the reference pipeline needs both rgb and depth images")
+        return self.process(frame.rgb, frame.depth, frame.pressure_pa)
+
     def process(self, rgb: NDArray[np.uint8], depth: NDArray, pressure_pa: float) -> dict[str, Any]:
         """Run one frame; returns node_forces (N x 3, N), net_force (3,), contact (N,),
         normal_pressure (N,), displacements (N x 3 corrected, m), raw_displacements,
