@@ -132,7 +132,7 @@ def _estimate_type() -> Any:
         from bubble_rt.estimator import Estimate
 
         return Estimate
-    except ImportError:
+    except (ImportError, OSError):  # core not built / not merged yet
         return _FallbackEstimate
 
 
@@ -148,7 +148,7 @@ def _info_type() -> Any:
         from bubble_rt.solver import SolverInfo
 
         return SolverInfo
-    except ImportError:
+    except (ImportError, OSError):
         return FrictionlessInfo
 
 
