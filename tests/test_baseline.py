@@ -238,3 +238,15 @@ def test_real_untouched_frames_give_small_force_and_little_contact() -> None:
         assert e.info.status == "solved"
         assert np.linalg.norm(e.net_force) < 0.5
         assert e.contact.mean() < 0.02
+
+
+def test_contact_threshold_taken_from_config() -> None:
+    ref_obj = SimpleNamespace(depth=_reference_depth(), pressure_pa=P_REF)
+    strict = SimpleNamespace(k_const=1e9, k_linear=2.0)
+    est = FrictionlessEstimator(
+        _mesh(), _camera(), ref_obj, strict, settings=FrictionlessSettings(pixel_stride=2)
+    )
+    e = est.estimate_depth(_indented_depth(), P_REF)
+    assert est.k_const == 1e9 and not e.contact.any()
+    est.reconfigure(k_const=2000.0)
+    assert est.estimate_depth(_indented_depth(), P_REF).contact.any()
