@@ -110,6 +110,37 @@ def test_inward_indentation_gives_inward_force_and_contact_at_indent() -> None:
     assert -6e-3 < u_top < -2e-3
 
 
+def test_recovers_pressure_generated_by_its_own_forward_model() -> None:
+    """Pressure patch -> equilibrium + gas displacement -> ray-cast depth -> estimate."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    est = _estimator()
+    m = _mesh()
+    interior, a = est.interior, est.areas
+    L = cotangent_laplacian(m.vertices, m.triangles)[interior][:, interior]
+    V = m.vertices
+    pc = -2500.0 * np.exp(-((V[:, 0] - 0.01) ** 2 + V[:, 1] ** 2) / (2 * 0.006**2))
+    pc[m.boundary] = 0.0
+    gas = est.P0 / est.V0
+    system = sp.bmat(
+        [
+            [est.T0 * L, sp.csr_matrix(-a[interior][:, None])],
+            [sp.csr_matrix(gas * a[interior][None, :]), sp.csr_matrix([[1.0]])],
+        ]
+    ).tocsc()
+    sol = spl.spsolve(system, np.concatenate([a[interior] * pc[interior], [0.0]]))
+    u = np.zeros(m.n_nodes)
+    u[interior] = sol[:-1]
+    assert u.min() < -1e-3  # a real dent, about 1.6 mm
+    depth = ref.render_depth(V + u[:, None] * est.normals, m.triangles, _camera())
+    e = est.estimate_depth(depth, P_REF)
+    f_true = ((a * pc)[:, None] * est.normals)[m.interior].sum(axis=0)
+    assert np.linalg.norm(e.net_force - f_true) < 0.05 * np.linalg.norm(f_true)
+    assert est.last_pv == pytest.approx(sol[-1], rel=0.05)
+    assert np.array_equal(e.contact, -pc > 2000.0)
+
+
 def test_contact_pressure_nonnegative_and_normal() -> None:
     est = _estimator()
     e = est.process(Frame(rgb=None, depth=_indented_depth(), pressure_pa=P_REF))
@@ -207,3 +238,15 @@ def test_real_untouched_frames_give_small_force_and_little_contact() -> None:
         assert e.info.status == "solved"
         assert np.linalg.norm(e.net_force) < 0.5
         assert e.contact.mean() < 0.02
+
+
+def test_contact_threshold_taken_from_config() -> None:
+    ref_obj = SimpleNamespace(depth=_reference_depth(), pressure_pa=P_REF)
+    strict = SimpleNamespace(k_const=1e9, k_linear=2.0)
+    est = FrictionlessEstimator(
+        _mesh(), _camera(), ref_obj, strict, settings=FrictionlessSettings(pixel_stride=2)
+    )
+    e = est.estimate_depth(_indented_depth(), P_REF)
+    assert est.k_const == 1e9 and not e.contact.any()
+    est.reconfigure(k_const=2000.0)
+    assert est.estimate_depth(_indented_depth(), P_REF).contact.any()

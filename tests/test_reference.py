@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from bubble_rt import reference as ref
 from bubble_rt.camera import Camera
+from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
 
 E, NU, THICK = 1.317e6, 0.5, 0.65e-3
@@ -218,6 +219,34 @@ def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
     return np.repeat(img[:, :, None], 3, axis=2)  # type: ignore[no-any-return]
 
 
+def test_pipeline_recovers_displacements_of_a_consistent_warp() -> None:
+    import cv2
+    from scipy.interpolate import griddata
+
+    m = _mesh()
+    cam = replace(Camera.d405(), fx=192.6, fy=192.6, cx=154.0, cy=120.8, width=320, height=240)
+    V = m.vertices
+    U_true = _indentation(m, 3e-3)
+    rgb_ref = _texture(cam.height, cam.width, seed=4)
+    # Each pixel of the current image shows the texture point it showed in the reference.
+    uv0, _ = cam.project(V)
+    uv1, _ = cam.project(V + U_true)
+    yy, xx = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
+    back = np.asarray(griddata(uv1, uv0 - uv1, (xx, yy), method="linear", fill_value=0.0))
+    back = back.astype(np.float32)
+    rgb_cur = cv2.remap(rgb_ref, xx + back[..., 0], yy + back[..., 1], cv2.INTER_LINEAR)
+    pipe = ref.ReferencePipeline(
+        V, m.triangles, m.boundary, cam, rgb_ref, ref.render_depth(V, m.triangles, cam), 0.0
+    )
+    out = pipe.process_frame(
+        Frame(rgb=rgb_cur, depth=ref.render_depth(V + U_true, m.triangles, cam), pressure_pa=0.0)
+    )
+    err = np.sqrt(((out["raw_displacements"] - U_true) ** 2).sum(axis=1).mean())
+    rms = np.sqrt((U_true**2).sum(axis=1).mean())
+    assert err < 0.15 * rms
+    assert out["net_force"][2] < 0
+
+
 def test_pipeline_on_synthetic_warp_returns_finite_outputs() -> None:
     import cv2
 
@@ -291,3 +320,19 @@ def test_pipeline_real_untouched_frame_gives_near_zero_force() -> None:
     assert np.sqrt((out["raw_displacements"] ** 2).sum(axis=1).mean()) < 1e-3
     assert np.linalg.norm(out["net_force"]) < 0.2
     assert not out["contact"].any()
+
+
+def test_reconfigure_weights_matches_fresh_problem() -> None:
+    m = _mesh()
+    U = _indentation(m, 3e-3, noise=1e-4, seed=5)
+    pb = ref.GroupLassoProblem(m.vertices, m.triangles, m.boundary, E, NU, THICK)
+    pb.reconfigure(k_f=1.0, k_u=1e5)
+    _, obj = pb.solve(U, 10.0, tight=True)
+    fresh = ref.GroupLassoProblem(
+        m.vertices, m.triangles, m.boundary, E, NU, THICK, k_f=1.0, k_u=1e5
+    )
+    _, obj_fresh = fresh.solve(U, 10.0, tight=True)
+    assert obj == pytest.approx(obj_fresh, rel=1e-7)
+    assert obj != pytest.approx(_problem().solve(U, 10.0, tight=True)[1], rel=1e-3)
+    with pytest.raises(ValueError, match="k_f"):
+        pb.reconfigure(k_f=-1.0)

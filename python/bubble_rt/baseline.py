@@ -132,7 +132,7 @@ def _estimate_type() -> Any:
         from bubble_rt.estimator import Estimate
 
         return Estimate
-    except ImportError:
+    except (ImportError, OSError):  # core not built / not merged yet
         return _FallbackEstimate
 
 
@@ -148,7 +148,7 @@ def _info_type() -> Any:
         from bubble_rt.solver import SolverInfo
 
         return SolverInfo
-    except ImportError:
+    except (ImportError, OSError):
         return FrictionlessInfo
 
 
@@ -411,6 +411,13 @@ class FrictionlessEstimator:
         self._Info = _info_type()
         self.setup_time_ms = 1e3 * (time.perf_counter() - t_setup)
         self.last_info: Any = None
+
+    def reconfigure(self, k_const: float | None = None, k_linear: float | None = None) -> None:
+        """Change the contact threshold constants (Pa, -); the QP is unaffected."""
+        if k_const is not None:
+            self.k_const = float(k_const)
+        if k_linear is not None:
+            self.k_linear = float(k_linear)
 
     def _P_data(self, w: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.asarray(self._C @ w) / self.n_rays + self._reg

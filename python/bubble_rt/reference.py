@@ -239,10 +239,31 @@ class GroupLassoProblem:
         s = self._VAR_SCALE
         F = K_I @ self._U_int + (K_I * s) @ self._x - self._dp * an
         norms = cp.norm(cp.reshape(F, (n, 3), order="C"), 2, axis=1)
-        objective = self.weights @ norms + (self.k_u / n * s * s) * cp.sum_squares(self._x)
+        # The minimiser depends only on k_u / k_f; that ratio is a Parameter (DPP), so
+        # calibration sweeps need no re-canonicalisation. Objective values come from NumPy.
+        self._ratio = cp.Parameter(nonneg=True, name="k_u_over_k_f")
+        self._ratio.value = self._ratio_value()
+        base_w = lasso_weights(n, self.boundary, 1.0)
+        objective = base_w @ norms + self._ratio * cp.sum_squares(self._x)
         self._problem = cp.Problem(cp.Minimize(objective))
         self.last_status: str = ""
         self.last_solve_ms: float = float("nan")
+
+    def reconfigure(self, k_f: float | None = None, k_u: float | None = None) -> None:
+        """Change the weights k_f (1/N) and k_u (1/m^2) without rebuilding the problem."""
+        if k_f is not None:
+            if not k_f > 0:
+                raise ValueError(f"k_f must be positive, got {k_f}")
+            self.k_f = float(k_f)
+            self.weights = lasso_weights(self.n, self.boundary, self.k_f)
+        if k_u is not None:
+            if not k_u > 0:
+                raise ValueError(f"k_u must be positive, got {k_u}")
+            self.k_u = float(k_u)
+        self._ratio.value = self._ratio_value()
+
+    def _ratio_value(self) -> float:
+        return self.k_u / (self.k_f * self.n) * self._VAR_SCALE**2
 
     def _check(self, U: ArrayLike, dp: float) -> NDArray[np.float64]:
         U = np.asarray(U, dtype=np.float64)
@@ -544,6 +565,12 @@ class ReferencePipeline:
         if np.any(bad):
             out[bad] = np.asarray(griddata(uv, pts, query_uv[bad], method="nearest"))
         return out
+
+    def process_frame(self, frame: Any) -> dict[str, Any]:
+        """``process`` on a ``Frame`` (needs ``rgb``, ``depth`` and ``pressure_pa``)."""
+        if frame.rgb is None or frame.depth is None:
+            raise ValueError("the reference pipeline needs both rgb and depth images")
+        return self.process(frame.rgb, frame.depth, frame.pressure_pa)
 
     def process(self, rgb: NDArray[np.uint8], depth: NDArray, pressure_pa: float) -> dict[str, Any]:
         """Run one frame; returns node_forces (N x 3, N), net_force (3,), contact (N,),
