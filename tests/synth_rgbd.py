@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
-
 from bubble_rt.camera import Camera
 from bubble_rt.mesh import MeshGeometry
+from numpy.typing import NDArray
 
 
 def texture(h: int, w: int, seed: int = 0) -> NDArray[np.uint8]:

@@ -13,6 +13,7 @@ released. Method "oracle" skips images and asks the simulator's ground truth ins
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,6 +35,7 @@ FLAG_OUTSIDE_IMAGE = 1
 FLAG_INVALID_DEPTH = 2
 FLAG_FLOW_UNRELIABLE = 4
 FLAG_NON_FINITE = 8
+FLAG_OUTLIER = 16
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,12 @@ class FlowSettings:
         pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian: Farneback
             parameters for method "farneback" (defaults: OpenCV's documented example values
             0.5, 3, 15, 3, 5, 1.2, box window).
+        clamp_rim: rim nodes are clamped (U = 0) whatever the images say; the edge of the
+            membrane is where depth is least reliable and the solver holds the rim anyway.
+        max_displacement_m: measured |U| above this flags the node (a depth edge, not the
+            membrane).
+        outlier_m: a node whose U differs by more than this from the median of its measured
+            neighbours is flagged (isolated depth/flow glitches); None disables.
         anchor: "mesh" takes x_ref as the mesh node itself (the mesh is fitted to the reference
             surface); "depth" lifts the node's pixel through the reference depth instead, so
             that fitting residuals cancel exactly.
@@ -67,7 +75,7 @@ class FlowSettings:
     margin_px: int = 24
     forward_backward: bool = False
     fb_threshold_px: float = 1.0
-    max_fill_level: int = 4
+    max_fill_level: int = 3
     depth_smoothing: int = 4
     pyr_scale: float = 0.5
     levels: int = 3
@@ -76,6 +84,9 @@ class FlowSettings:
     poly_n: int = 5
     poly_sigma: float = 1.2
     gaussian: bool = False
+    clamp_rim: bool = True
+    max_displacement_m: float = 0.03
+    outlier_m: float | None = 0.004
     anchor: str = "mesh"
 
     def __post_init__(self) -> None:
@@ -153,9 +164,9 @@ class Reference:
             s = np.zeros(frames[0].depth.shape, np.float64)  # type: ignore[union-attr]
             n = np.zeros(s.shape, np.int32)
             for f in frames:
-                d = f.depth
-                ok = np.isfinite(d) & (d > 0)  # type: ignore[operator]
-                s[ok] += d[ok]  # type: ignore[index]
+                d = np.asarray(f.depth)
+                ok = np.isfinite(d) & (d > 0)
+                s[ok] += d[ok]
                 n += ok
             depth = np.where(n > 0, s / np.maximum(n, 1), 0.0).astype(np.float32)
         pressure = float(np.mean([f.pressure_pa for f in frames]))
@@ -260,6 +271,7 @@ class DeformationTracker:
         self._laplacian = mesh_laplacian(mesh)
         self._rim = np.zeros(mesh.n_nodes, bool)
         self._rim[mesh.boundary] = True
+        self._neighbours = _neighbour_table(self._laplacian)
         uv, z = camera.project(mesh.vertices)
         self.uv_ref = np.ascontiguousarray(uv, dtype=np.float64)
         with np.errstate(invalid="ignore"):
@@ -304,42 +316,26 @@ class DeformationTracker:
 
     # ------------------------------------------------------------------ helpers
     def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
-        """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
-        from . import _core
-
-        cam = self.camera
-        filled, level = _core._fill_depth(
-            np.ascontiguousarray(depth, dtype=np.float32), self.settings.depth_smoothing
-        )
-        pts, flags = _core._lift_pixels(
-            filled,
-            level,
-            np.ascontiguousarray(uv, dtype=np.float64),
-            cam.fx,
-            cam.fy,
-            cam.cx,
-            cam.cy,
-            self.settings.max_fill_level,
-        )
-        flags = np.asarray(flags, dtype=np.uint8).copy()
-        pts = np.asarray(pts)
-        if cam.has_distortion:
-            ok = flags == 0
-            pts = np.zeros((len(uv), 3))
-            pts[ok] = cam.to_camera(cam.backproject(uv[ok], _sample_z(filled, uv[ok])))
-        return cam.to_mesh(pts), flags
+        s = self.settings
+        return _lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
 
     def _finish(
         self, U: NDArray, flags: NDArray, dp: float, timings: dict[str, float], flow: NDArray
     ) -> Deformation:
+        s = self.settings
         flags = flags.astype(np.uint8)
-        U = np.where(np.isfinite(U), U, 0.0)
         flags[~np.isfinite(U).all(axis=1)] |= FLAG_NON_FINITE
+        U = np.where(np.isfinite(U), U, 0.0)
+        with np.errstate(invalid="ignore"):
+            flags[np.linalg.norm(U, axis=1) > s.max_displacement_m] |= FLAG_OUTLIER
+        if s.outlier_m is not None:
+            flags[_neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
         valid = flags == 0
-        # Unseen rim nodes are clamped (U = 0) rather than guessed; they anchor the fill too.
-        known = valid | self._rim
+        known = valid.copy()
         Uk = U.copy()
-        Uk[self._rim & ~valid] = 0.0
+        if s.clamp_rim:
+            Uk[self._rim] = 0.0
+            known |= self._rim
         U = harmonic_fill(self._laplacian, Uk, known)
         return Deformation(
             U=U,
@@ -378,7 +374,6 @@ class DeformationTracker:
         x_cur, lift_flags = self._lift(frame.depth, self.uv_ref + flow)  # type: ignore[arg-type]
         flags |= lift_flags
         U = x_cur - self.x_ref
-        t2 = time.perf_counter()
         out = self._finish(U, flags, dp, {}, flow)
         t3 = time.perf_counter()
         out.timings_ms = {"flow": (t1 - t0) * 1e3, "lift": (t3 - t1) * 1e3}
@@ -389,3 +384,86 @@ def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
     from scipy.ndimage import map_coordinates
 
     return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")  # type: ignore[no-any-return]
+
+
+def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:
+    """N x max_degree neighbour indices from a Laplacian, padded with -1."""
+    n = L.shape[0]
+    rows = [[j for j in L.indices[L.indptr[i] : L.indptr[i + 1]] if j != i] for i in range(n)]
+    width = max(len(r) for r in rows)
+    out = np.full((n, width), -1, dtype=np.intp)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+    return out
+
+
+def _neighbour_outliers(
+    U: NDArray, measured: NDArray[np.bool_], nb: NDArray[np.intp], tol: float
+) -> NDArray[np.bool_]:
+    """Measured nodes whose U is further than ``tol`` from the component-wise median of their
+    measured neighbours (needs at least two of them)."""
+    ok = (nb >= 0) & measured[np.maximum(nb, 0)]
+    G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
+    enough = ok.sum(axis=1) >= 2
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: handled by `enough`
+        med = np.nanmedian(G, axis=1)
+    dev = np.linalg.norm(U - np.nan_to_num(med), axis=1)
+    return measured & enough & (dev > tol)
+
+
+def lift_pixels(
+    depth: NDArray,
+    uv: NDArray,
+    camera: Camera,
+    *,
+    max_fill_level: int = 3,
+    depth_smoothing: int = 4,
+) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
+    """Back-project pixels through a depth image: the lifting step on its own.
+
+    Args:
+        depth: H x W depth (metres of camera z, 0 / NaN invalid); holes are filled first.
+        uv: N x 2 pixel coordinates (u right, v down; pixel centres at integers).
+        camera: gives intrinsics and the camera -> mesh pose.
+
+    Returns:
+        Mesh-frame points (N x 3, metres; zeros where flagged) and FLAG_* bits (N uint8).
+    """
+    d = np.asarray(depth, dtype=np.float32)
+    if d.shape != (camera.height, camera.width):
+        raise FrameError(
+            f"depth shape {d.shape} differs from the camera's {camera.height} x {camera.width}"
+        )
+    pts, flags = _lift(
+        d, np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera, max_fill_level, depth_smoothing
+    )
+    pts[flags != 0] = 0.0
+    return pts, flags
+
+
+def _lift(
+    depth: NDArray, uv: NDArray, cam: Camera, max_fill_level: int, smoothing: int
+) -> tuple[NDArray, NDArray]:
+    """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
+    from . import _core
+
+    filled, level = _core._fill_depth(np.ascontiguousarray(depth, dtype=np.float32), smoothing)
+    pts, flags = _core._lift_pixels(
+        filled,
+        level,
+        np.ascontiguousarray(uv, dtype=np.float64),
+        cam.fx,
+        cam.fy,
+        cam.cx,
+        cam.cy,
+        max_fill_level,
+    )
+    flags = np.asarray(flags, dtype=np.uint8).copy()
+    pts = np.asarray(pts)
+    if cam.has_distortion:
+        # The C++ lift is pinhole; with distortion re-project the sampled depths exactly.
+        ok = flags == 0
+        pts = np.zeros((len(uv), 3))
+        pts[ok] = cam.to_camera(cam.backproject(uv[ok], _sample_z(filled, uv[ok])))
+    return cam.to_mesh(pts), flags

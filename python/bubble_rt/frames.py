@@ -36,7 +36,11 @@ def pressure_to_pa(value: float, unit: str) -> float:
     """Convert a pressure reading to pascals; ``unit`` is one of PRESSURE_UNITS."""
     if unit not in PRESSURE_UNITS:
         raise FrameError(f"pressure unit {unit!r} unknown; use one of {sorted(PRESSURE_UNITS)}")
-    p = float(np.asarray(value, dtype=np.float64).reshape(-1)[0]) if np.ndim(value) else float(value)
+    p = (
+        float(np.asarray(value, dtype=np.float64).reshape(-1)[0])
+        if np.ndim(value)
+        else float(value)
+    )
     if not np.isfinite(p):
         raise FrameError(f"pressure is not finite: {value!r}")
     return p * PRESSURE_UNITS[unit]
