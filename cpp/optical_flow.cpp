@@ -39,6 +39,9 @@ OpticalFlow::OpticalFlow(const FlowParams& params) : params_(params) {
     require(params.dis_preset >= 0 && params.dis_preset <= 2,
             "DIS preset must be 0 (ultrafast), 1 (fast) or 2 (medium)");
     dis_ = cv::DISOpticalFlow::create(params.dis_preset);
+    if (params.dis_finest_scale >= 0) dis_->setFinestScale(params.dis_finest_scale);
+    if (params.dis_refinement_iterations >= 0)
+      dis_->setVariationalRefinementIterations(params.dis_refinement_iterations);
   } else {
     const FarnebackParams& f = params.farneback;
     require(f.pyr_scale > 0.0 && f.pyr_scale < 1.0, "Farneback pyr_scale must be in (0, 1)");

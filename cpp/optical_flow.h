@@ -25,6 +25,11 @@ struct FlowParams {
   FlowMethod method = FlowMethod::kDis;
   // cv::DISOpticalFlow preset: 0 ultrafast, 1 fast, 2 medium.
   int dis_preset = 2;
+  // Overrides of the preset (-1 keeps the preset's value): finest pyramid level the flow is
+  // computed at (0 = full resolution of the working image) and variational refinement
+  // iterations.
+  int dis_finest_scale = -1;
+  int dis_refinement_iterations = -1;
   FarnebackParams farneback;
   // Images are resized by this factor (0 < scale <= 1) before the flow; flow is returned in
   // full-resolution pixels.

@@ -283,3 +283,16 @@ def test_flow_settings_validation():
     heavy = FlowSettings(method="farneback_heavy").farneback_params()
     assert heavy["levels"] == 30 and heavy["winsize"] == 50 and heavy["poly_n"] == 7
     assert replace(FlowSettings(), levels=5).farneback_params()["levels"] == 5
+
+
+def test_dis_output_never_reused_as_initial_guess(scene):
+    """DIS treats a pre-sized output as its initial guess; the tracker must start fresh."""
+    cam, depth, img, ref, mesh = scene
+    F = smooth_flow(cam.height, cam.width, 3.0)
+    moved = Frame(warp(img, F), depth, 1e5)
+    tr = DeformationTracker(mesh, cam, ref, FlowSettings(method="dis_medium"))
+    first = tr.track(moved).flow
+    again = tr.track(moved).flow
+    np.testing.assert_array_equal(first, again)
+    still = tr.track(Frame(img, depth, 1e5))
+    assert np.abs(still.flow).max() < 0.05

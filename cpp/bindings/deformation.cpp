@@ -59,7 +59,7 @@ void bind_deformation(py::module_& m) {
   py::class_<bubble::OpticalFlow>(m, "_OpticalFlow")
       .def(py::init([](int method, int dis_preset, double pyr_scale, int levels, int winsize,
                        int iterations, int poly_n, double poly_sigma, bool gaussian, double scale,
-                       bool forward_backward) {
+                       bool forward_backward, int dis_finest_scale, int dis_refinement_iterations) {
              bubble::FlowParams p;
              bubble::require(method == 0 || method == 1, "method must be 0 (Farneback) or 1 (DIS)");
              p.method = static_cast<bubble::FlowMethod>(method);
@@ -67,11 +67,14 @@ void bind_deformation(py::module_& m) {
              p.farneback = {pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian};
              p.scale = scale;
              p.forward_backward = forward_backward;
+             p.dis_finest_scale = dis_finest_scale;
+             p.dis_refinement_iterations = dis_refinement_iterations;
              return new bubble::OpticalFlow(p);
            }),
            py::arg("method"), py::arg("dis_preset"), py::arg("pyr_scale"), py::arg("levels"),
            py::arg("winsize"), py::arg("iterations"), py::arg("poly_n"), py::arg("poly_sigma"),
-           py::arg("gaussian"), py::arg("scale"), py::arg("forward_backward"))
+           py::arg("gaussian"), py::arg("scale"), py::arg("forward_backward"),
+           py::arg("dis_finest_scale") = -1, py::arg("dis_refinement_iterations") = -1)
       .def(
           "set_reference",
           [](bubble::OpticalFlow& self, const U8Image& rgb, int x, int y, int w, int h) {

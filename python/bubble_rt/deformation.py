@@ -56,6 +56,9 @@ class FlowSettings:
         max_fill_level: depth filled from pyramid level k bridges holes about 2^k pixels across;
             nodes whose depth comes from a coarser level are flagged.
         depth_smoothing: Gauss-Seidel sweeps that make the hole fill harmonic.
+        dis_finest_scale, dis_refinement_iterations: override the DIS preset's finest pyramid
+            level (0 = working resolution; ultrafast/fast use 2, medium 1) and variational
+            refinement iterations; None keeps the preset.
         pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian: Farneback
             parameters for method "farneback" (defaults: OpenCV's documented example values
             0.5, 3, 15, 3, 5, 1.2, box window).
@@ -77,6 +80,8 @@ class FlowSettings:
     fb_threshold_px: float = 1.0
     max_fill_level: int = 3
     depth_smoothing: int = 4
+    dis_finest_scale: int | None = None
+    dis_refinement_iterations: int | None = None
     pyr_scale: float = 0.5
     levels: int = 3
     winsize: int = 15
@@ -303,6 +308,10 @@ class DeformationTracker:
             dis_preset=_DIS_PRESETS.get(s.method, 2),
             scale=s.scale,
             forward_backward=s.forward_backward,
+            dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
+            dis_refinement_iterations=(
+                -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
+            ),
             **fb,
         )
         self.roi = _roi(self.uv_ref, inside, camera, s.margin_px)
