@@ -296,3 +296,16 @@ def test_dis_output_never_reused_as_initial_guess(scene):
     np.testing.assert_array_equal(first, again)
     still = tr.track(Frame(img, depth, 1e5))
     assert np.abs(still.flow).max() < 0.05
+
+
+def test_set_reference_tares_the_tracker(scene):
+    cam, depth, img, ref, mesh = scene
+    F = np.zeros((cam.height, cam.width, 2), np.float32)
+    F[..., 1] = 1.5
+    moved = Frame(warp(img, F), depth, 100020.0)
+    tr = DeformationTracker(mesh, cam, ref)
+    assert np.abs(tr.track(moved).U).max() > 1e-4
+    tr.set_reference(Reference.capture(moved))
+    d = tr.track(moved)
+    assert np.abs(d.U).max() < 2e-6
+    assert d.dp == 0.0

@@ -270,8 +270,6 @@ class DeformationTracker:
         reference: Reference,
         settings: FlowSettings | None = None,
     ) -> None:
-        from . import _core
-
         self.mesh = mesh
         self.camera = camera
         self.reference = reference
@@ -292,9 +290,18 @@ class DeformationTracker:
                 & (uv[:, 1] <= camera.height - 0.5)
             )
         self.visible = inside
-        self.x_ref = np.array(mesh.vertices, dtype=np.float64)
         self._flow: Any = None
-        if self.settings.method == "oracle":
+        self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
+        self.set_reference(reference)
+
+    def set_reference(self, reference: Reference) -> None:
+        """Measure against a new reference from now on (tare); mesh and camera stay."""
+        from . import _core
+
+        camera, s = self.camera, self.settings
+        self.x_ref = np.array(self.mesh.vertices, dtype=np.float64)
+        if s.method == "oracle":
+            self.reference = reference
             return
         if reference.rgb is None or reference.depth is None:
             raise FrameError("reference has no rgb/depth: image methods need an RGBD reference")
@@ -304,27 +311,24 @@ class DeformationTracker:
                 f"reference depth size {reference.depth.shape[1]} x {reference.depth.shape[0]} "
                 f"differs from the camera's {camera.width} x {camera.height}"
             )
-        s = self.settings
-        fb = s.farneback_params()
-        self._flow = _core._OpticalFlow(
-            method=1 if s.method in _DIS_PRESETS else 0,
-            dis_preset=_DIS_PRESETS.get(s.method, 2),
-            scale=s.scale,
-            forward_backward=s.forward_backward,
-            dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
-            dis_refinement_iterations=(
-                -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
-            ),
-            **fb,
-        )
-        self.roi = _roi(self.uv_ref, inside, camera, s.margin_px)
+        if self._flow is None:
+            self._flow = _core._OpticalFlow(
+                method=1 if s.method in _DIS_PRESETS else 0,
+                dis_preset=_DIS_PRESETS.get(s.method, 2),
+                scale=s.scale,
+                forward_backward=s.forward_backward,
+                dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
+                dis_refinement_iterations=(
+                    -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
+                ),
+                **s.farneback_params(),
+            )
         self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
+        self.reference = reference
         if s.anchor == "depth":
             pts, flags = self._lift(reference.depth, self.uv_ref)
             ok = flags == 0
-            anchored = self.x_ref.copy()
-            anchored[ok] = pts[ok]
-            self.x_ref = anchored
+            self.x_ref[ok] = pts[ok]
 
     # ------------------------------------------------------------------ helpers
     def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
