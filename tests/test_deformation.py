@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -309,3 +310,42 @@ def test_set_reference_tares_the_tracker(scene):
     d = tr.track(moved)
     assert np.abs(d.U).max() < 2e-6
     assert d.dp == 0.0
+
+
+# ---------------------------------------------------------------- with the estimator
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+def test_identical_frames_give_zero_force_and_no_contact(scene):
+    ForceEstimator = pytest.importorskip(
+        "bubble_rt.estimator"
+    ).ForceEstimator  # TEMP until core is on main
+
+    cam, depth, img, ref, mesh = scene
+    est = ForceEstimator(mesh)
+    est.attach(DeformationTracker(mesh, cam, ref))
+    e = est.process(Frame(img.copy(), depth.copy(), 100000.0))
+    assert not e.contact.any()
+    assert np.linalg.norm(e.net_force) < 1e-3
+    assert e.valid_node_fraction == 1.0
+    assert {"flow", "lift", "solve"} <= set(e.timings_ms)
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
+def test_real_untouched_frames_give_no_contact_and_small_force():
+    ForceEstimator = pytest.importorskip(
+        "bubble_rt.estimator"
+    ).ForceEstimator  # TEMP until core is on main
+    from bubble_rt.recordings import open_recording
+
+    rec = open_recording(DATA)
+    ref = Reference.capture([rec[i] for i in range(5)])
+    mesh = fit_mesh(Mesh.preset("medium"), ref, rec.camera)
+    est = ForceEstimator(mesh)
+    est.attach(DeformationTracker(mesh, rec.camera, ref))
+    for i in range(5, 20):
+        e = est.process(rec[i])
+        assert not e.contact.any(), f"frame {i}: {int(e.contact.sum())} contact nodes"
+        assert np.linalg.norm(e.net_force) < 0.5, f"frame {i}: |net force| {e.net_force}"
+        assert e.valid_node_fraction > 0.7
+        assert np.isfinite(e.displacements).all()
