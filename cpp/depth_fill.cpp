@@ -59,7 +59,8 @@ inline float upsample(const cv::Mat& coarse, int x, int y) {
 
 }  // namespace
 
-void fill_depth(const cv::Mat& depth, cv::Mat& filled, cv::Mat& level, int smooth_iterations) {
+void fill_depth(const cv::Mat& depth, cv::Mat& filled, cv::Mat& level, int smooth_iterations,
+                int smooth_max_level) {
   require(depth.type() == CV_32F, "depth must be a float32 image");
   require(depth.rows > 0 && depth.cols > 0, "depth image is empty");
   require(smooth_iterations >= 0, "smooth_iterations must be >= 0");
@@ -116,9 +117,14 @@ void fill_depth(const cv::Mat& depth, cv::Mat& filled, cv::Mat& level, int smoot
     l0[idx] = static_cast<uint8_t>(std::min(k, 254));
   }
   filled = pyr[0].d;
-  // Harmonic refinement inside holes (measured pixels fixed): Gauss-Seidel sweeps.
+  // Harmonic refinement inside holes (measured pixels fixed): Gauss-Seidel sweeps, only where
+  // the fill is trusted at all (large holes, e.g. the background, are flagged by their level).
+  std::vector<int> smooth;
+  smooth.reserve(holes.size());
+  for (const int idx : holes)
+    if (l0[idx] <= smooth_max_level) smooth.push_back(idx);
   for (int it = 0; it < smooth_iterations; ++it) {
-    for (const int idx : holes) {
+    for (const int idx : smooth) {
       const int y = idx / cols, x = idx - y * cols;
       const float left = d0[x > 0 ? idx - 1 : idx], right = d0[x < cols - 1 ? idx + 1 : idx];
       const float up = d0[y > 0 ? idx - cols : idx], down = d0[y < rows - 1 ? idx + cols : idx];

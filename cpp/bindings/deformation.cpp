@@ -119,17 +119,17 @@ void bind_deformation(py::module_& m) {
 
   m.def(
       "_fill_depth",
-      [](const F32Image& depth, int smooth_iterations) {
+      [](const F32Image& depth, int smooth_iterations, int smooth_max_level) {
         cv::Mat d = f32_view(depth, "depth");
         cv::Mat filled, level;
         {
           py::gil_scoped_release release;
-          bubble::fill_depth(d, filled, level, smooth_iterations);
+          bubble::fill_depth(d, filled, level, smooth_iterations, smooth_max_level);
         }
         return std::make_tuple(mat_to_array<float>(filled, 1),
                                mat_to_array<std::uint8_t>(level, 1));
       },
-      py::arg("depth"), py::arg("smooth_iterations") = 4);
+      py::arg("depth"), py::arg("smooth_iterations") = 4, py::arg("smooth_max_level") = 254);
 
   m.def(
       "_lift_pixels",

@@ -464,7 +464,9 @@ def _lift(
     """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
     from . import _core
 
-    filled, level = _core._fill_depth(np.ascontiguousarray(depth, dtype=np.float32), smoothing)
+    filled, level = _core._fill_depth(
+        np.ascontiguousarray(depth, dtype=np.float32), smoothing, max_fill_level + 1
+    )
     pts, flags = _core._lift_pixels(
         filled,
         level,
