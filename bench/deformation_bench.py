@@ -109,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
                 repeats=n,
             )
         )
+    real = _real_frames(args.repeats)
     ok = [r for r in rows if r["flow_rms_px"] <= 0.1]
     best = min(ok, key=lambda r: r["flow_ms"] + r["lift_ms"]) if ok else None
 
@@ -128,6 +129,13 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['flow_ms'] + r['lift_ms']:>11.1f}{r['total_min_ms']:>8.1f}"
             f"{r['flow_rms_px']:>9.3f}{r['flow_max_px']:>9.3f}{mark}"
         )
+    if real is not None:
+        print(
+            f"real Punyo frames 5-19 (reference 0-4), default FlowSettings: flow "
+            f"{real['flow_ms']:.1f} ms, lift {real['lift_ms']:.1f} ms, valid nodes "
+            f"{real['valid_fraction']:.3f}"
+        )
+    print(f"load average at the end: {os.getloadavg()[0]:.2f} (2 cores)")
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -137,11 +145,39 @@ def main(argv: list[str] | None = None) -> int:
                     fill_ms=float(np.median(fill_ms)),
                     rows=rows,
                     best=None if best is None else best["name"],
+                    real=real,
+                    load_average=os.getloadavg()[0],
                 ),
                 indent=1,
             )
         )
     return 0
+
+
+def _real_frames(repeats: int) -> dict[str, float] | None:
+    """Default settings on the real recording (../shared), or None when it is absent."""
+    data = ROOT.parent / "shared" / "data" / "punyo-demo-0"
+    if not data.exists():
+        return None
+    from bubble_rt.recordings import open_recording
+
+    rec = open_recording(data)
+    ref = Reference.capture([rec[i] for i in range(5)])
+    mesh = fit_mesh(Mesh.preset("medium"), ref, rec.camera)
+    tr = DeformationTracker(mesh, rec.camera, ref)
+    frames = [rec[i] for i in range(5, 20)]
+    tr.track(frames[0])
+    flow, lift, valid = [], [], []
+    for f in frames:
+        d = tr.track(f)
+        flow.append(d.timings_ms["flow"])
+        lift.append(d.timings_ms["lift"])
+        valid.append(d.valid_fraction)
+    return dict(
+        flow_ms=float(np.median(flow)),
+        lift_ms=float(np.median(lift)),
+        valid_fraction=float(np.mean(valid)),
+    )
 
 
 if __name__ == "__main__":
