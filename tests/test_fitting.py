@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.deformation import Reference
-from bubble_rt.fitting import fit_mesh, surface_residuals
+from bubble_rt.fitting import centre_pose, dome_apex, fit_mesh, surface_residuals
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh, MeshGeometry
 from synth_rgbd import dome_depth, texture
@@ -104,3 +104,48 @@ def test_fit_real_recording_nodes_on_observed_surface():
     inner = np.isfinite(z) & (P[:, 2] > 0.005)
     assert inner.sum() > 200
     assert np.median(np.abs(z[inner] - P[inner, 2])) < 1.5e-3
+
+
+def test_centre_pose_recovers_in_plane_offset():
+    """The dome is rendered with the true pose; the camera starts 3 mm and 4 degrees off."""
+    cam = Camera.d405()
+    depth = dome_depth(cam, LOWER)
+    a = np.radians(4.0)
+    off = np.eye(4)
+    off[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    off[:2, 3] = [0.003, -0.002]
+    wrong = cam.with_pose(off @ cam.pose_matrix)
+    apex, yaw, ratio = dome_apex(depth, wrong)
+    assert np.hypot(*apex[:2]) > 2e-3 and abs(np.degrees(yaw)) > 3.0
+    fixed = centre_pose(wrong, depth)
+    np.testing.assert_allclose(fixed.pose_matrix, cam.pose_matrix, atol=2e-4)
+    apex, yaw, ratio = dome_apex(depth, fixed)
+    assert np.hypot(*apex[:2]) < 1e-4
+    assert apex[2] == pytest.approx(LOWER.dome_height, abs=2e-4)
+    assert ratio == pytest.approx((LOWER.semi_axis_y / LOWER.semi_axis_x) ** 2, rel=0.05)
+
+
+def test_centre_pose_refuses_a_wrong_initial_pose():
+    cam = Camera.d405()
+    depth = dome_depth(cam, LOWER)
+    off = np.eye(4)
+    off[0, 3] = 0.03
+    with pytest.raises(FrameError, match="too far"):
+        centre_pose(cam.with_pose(off @ cam.pose_matrix), depth)
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
+def test_real_recording_placement_from_data():
+    from bubble_rt.recordings import open_recording, punyo_pose
+
+    rec = open_recording(DATA)
+    # The in-plane correction over the public placement is small ...
+    delta = rec.camera.pose_matrix @ np.linalg.inv(punyo_pose())
+    assert np.hypot(delta[0, 3], delta[1, 3]) < 2e-3
+    # ... and every frame's dome apex then sits over the footprint centre.
+    for i in (0, 10, 19):
+        apex, yaw, ratio = dome_apex(rec[i].depth, rec.camera)
+        assert np.hypot(*apex[:2]) < 5e-4
+        assert abs(np.degrees(yaw)) < 1.0
+        assert 0.025 < apex[2] < 0.035
+        assert 0.4 < ratio < 0.7  # the long axis really is x

@@ -56,7 +56,8 @@ def test_punyo_reader_on_fixture(tmp_path):
     cam = rec.camera
     assert (cam.width, cam.height) == (W, H)
     np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], [FX, FY, CX, CY], atol=1e-3)
-    np.testing.assert_allclose(cam.pose_matrix, punyo_pose())
+    np.testing.assert_allclose(cam.pose_matrix, punyo_pose())  # a plane: nothing to centre
+    assert rec.placement.startswith("punyo_pose (not centred")
     f = rec[1]
     assert f.index == 1
     assert f.pressure_pa == pytest.approx(106600.0)
@@ -146,6 +147,7 @@ needs_data = pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-
 def test_real_recording_reader():
     rec = open_recording(DATA)
     assert len(rec) == 20
+    assert rec.placement == "centred"
     cam = rec.camera
     # Pinhole fit of the cloud (the README's figures), not the original code's 385.263.
     np.testing.assert_allclose(

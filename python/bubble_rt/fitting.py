@@ -35,7 +35,7 @@ from .deformation import (
     mesh_laplacian,
 )
 from .frames import FrameError
-from .mesh import Mesh
+from .mesh import Mesh, MeshGeometry
 
 
 class _Surface:
@@ -197,3 +197,64 @@ def surface_residuals(mesh: Mesh, reference: Reference, camera: Camera) -> NDArr
     surf = _Surface(reference.depth, camera, max_fill_level=0)
     g, ok = surf.gap(np.asarray(mesh.vertices))
     return np.where(ok, g, np.nan)
+
+
+def dome_apex(
+    depth: NDArray,
+    camera: Camera,
+    top_fraction: float = 0.7,
+    geometry: MeshGeometry | None = None,
+) -> tuple[NDArray[np.float64], float, float]:
+    """Apex of the observed dome in the mesh frame, from a quadratic fit to its top.
+
+    The points of ``depth`` (H x W, m) over the footprint (``geometry``'s ellipse, default
+    MeshGeometry()) whose height exceeds ``top_fraction`` of the top height are fitted with
+    z = quadratic(x, y).
+
+    Returns:
+        apex (3,) in the mesh frame (m), yaw (rad) of the dome's long axis about mesh z
+        (0 when it runs along x), and the curvature ratio short/long axis (about
+        (b / a)^2 for an elliptical footprint with semi-axes a > b).
+    """
+    P = camera.depth_to_points(np.asarray(depth))
+    g = geometry or MeshGeometry()
+    P = P[np.isfinite(P).all(axis=1)]
+    P = P[(P[:, 0] / g.semi_axis_x) ** 2 + (P[:, 1] / g.semi_axis_y) ** 2 < 1.0]
+    if len(P) < 100:
+        raise FrameError("depth has too few valid points over the footprint to locate the dome")
+    top = np.percentile(P[:, 2], 99.5)
+    Q = P[P[:, 2] > top_fraction * top]
+    x, y, z = Q.T
+    A = np.column_stack([x * x, y * y, x * y, x, y, np.ones_like(x)])
+    c = np.linalg.lstsq(A, z, rcond=None)[0]
+    H = np.array([[2 * c[0], c[2]], [c[2], 2 * c[1]]])
+    if np.any(np.linalg.eigvalsh(H) >= 0):
+        raise FrameError("the observed top is not a dome (quadratic fit is not concave)")
+    xy = np.linalg.solve(H, -c[3:5])
+    h = float(c[5] + c[3:5] @ xy + 0.5 * xy @ H @ xy)
+    w, vecs = np.linalg.eigh(H)  # ascending: most negative (strongest curvature) first
+    long_axis = vecs[:, 1]
+    yaw = float(np.arctan2(long_axis[1], long_axis[0]))
+    yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2  # an axis, not a direction
+    return np.array([xy[0], xy[1], h]), yaw, float(w[1] / w[0])
+
+
+def centre_pose(camera: Camera, depth: NDArray, max_shift_m: float = 0.01) -> Camera:
+    """The camera with its pose corrected in the rim plane so that the observed dome's apex
+    sits over the footprint centre and its long axis along mesh x.
+
+    Only the in-plane placement (x, y, yaw) is derived from the data; the rim plane (tilt and
+    height) is kept, since the rim itself is hidden. Corrections larger than ``max_shift_m``
+    or 10 degrees raise FrameError (a wrong initial pose, not a refinement).
+    """
+    apex, yaw, _ = dome_apex(depth, camera)
+    if np.hypot(apex[0], apex[1]) > max_shift_m or abs(yaw) > np.radians(10.0):
+        raise FrameError(
+            f"dome apex at ({apex[0] * 1e3:.1f}, {apex[1] * 1e3:.1f}) mm, yaw "
+            f"{np.degrees(yaw):.1f} deg: too far from the footprint centre for a refinement"
+        )
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = -(T[:2, :2] @ apex[:2])
+    return camera.with_pose(T @ camera.pose_matrix)
