@@ -21,6 +21,13 @@ def test_parse_frames_ranges_and_lists():
     assert parse_frames("0-1, 5,7-8", 20) == [0, 1, 5, 7, 8]
 
 
+def test_flow_choices_match_the_tracker():
+    from bubble_rt.commands.estimate import FLOW_CHOICES
+    from bubble_rt.deformation import FLOW_METHODS
+
+    assert set(FLOW_CHOICES) == set(FLOW_METHODS) - {"oracle"}
+
+
 def test_parse_frames_errors():
     with pytest.raises(ValueError, match="out of range"):
         parse_frames("18-20", 20)

@@ -42,9 +42,11 @@ def parse_frames(spec: str, n: int) -> list[int]:
     return out
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from bubble_rt.deformation import FLOW_METHODS
+#: Image-based methods of bubble_rt.deformation.FLOW_METHODS (not imported: --help stays fast).
+FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy")
 
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", help="recording folder (Punyo .npy layout or PNG folder)")
     parser.add_argument(
         "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
@@ -56,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--flow",
         default=None,
-        choices=[m for m in FLOW_METHODS if m != "oracle"],
+        choices=FLOW_CHOICES,
         help="optical flow method (default: FlowSettings' default)",
     )
     parser.add_argument("--flow-scale", type=float, default=None, help="flow image scale (0, 1]")
