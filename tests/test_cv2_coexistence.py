@@ -3,6 +3,7 @@ OpenCV 4.6 must load and run in one process, in either import order."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -29,12 +30,16 @@ print(cv2.__version__, float(np.median(pip_flow[40:80, 40:120, 0])), float(ours[
 
 
 def run(first: str, second: str) -> list[str]:
-    python_dir = Path(__file__).resolve().parents[1] / "python"
+    import bubble_rt
+
+    # The bubble_rt this test process uses (source tree or installed), for the child too.
+    package_parent = Path(bubble_rt.__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(package_parent), OPENBLAS_NUM_THREADS="1")
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT.format(first=first, second=second)],
         capture_output=True,
         text=True,
-        env={"PYTHONPATH": str(python_dir), "OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin"},
+        env=env,
         timeout=120,
     )
     assert out.returncode == 0, out.stderr
