@@ -349,3 +349,31 @@ def test_real_untouched_frames_give_no_contact_and_small_force():
         assert np.linalg.norm(e.net_force) < 0.5, f"frame {i}: |net force| {e.net_force}"
         assert e.valid_node_fraction > 0.7
         assert np.isfinite(e.displacements).all()
+
+
+def test_core_input_errors_are_value_errors():
+    from bubble_rt import _core
+
+    kw = dict(
+        pyr_scale=0.5,
+        levels=3,
+        winsize=15,
+        iterations=3,
+        poly_n=5,
+        poly_sigma=1.2,
+        gaussian=False,
+        scale=1.0,
+        forward_backward=False,
+    )
+    with pytest.raises(ValueError, match="DIS preset"):
+        _core._OpticalFlow(method=1, dis_preset=7, **kw)
+    with pytest.raises(ValueError, match="poly_n"):
+        _core._OpticalFlow(method=0, dis_preset=0, **{**kw, "poly_n": 6})
+    of = _core._OpticalFlow(method=1, dis_preset=0, **kw)
+    with pytest.raises(ValueError, match="no reference"):
+        of.compute(np.zeros((20, 20, 3), np.uint8))
+    of.set_reference(np.zeros((20, 20, 3), np.uint8), 0, 0, 20, 20)
+    with pytest.raises(ValueError, match="size differs"):
+        of.compute(np.zeros((20, 21, 3), np.uint8))
+    with pytest.raises(ValueError, match="2-D"):
+        _core._fill_depth(np.zeros((4, 4, 2), np.float32))
