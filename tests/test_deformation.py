@@ -377,3 +377,23 @@ def test_core_input_errors_are_value_errors():
         of.compute(np.zeros((20, 21, 3), np.uint8))
     with pytest.raises(ValueError, match="2-D"):
         _core._fill_depth(np.zeros((4, 4, 2), np.float32))
+
+
+def test_flow_only_over_the_mesh_roi():
+    cam = Camera.d405()
+    pose = cam.pose_matrix.copy()
+    pose[2, 3] = -0.16  # further away: the mesh covers the middle of the image only
+    cam = cam.with_pose(pose)
+    depth = dome_depth(cam)
+    img = texture(cam.height, cam.width)
+    ref = Reference.capture(Frame(img, depth, 1e5))
+    mesh = fit_mesh(Mesh.preset("coarse"), ref, cam)
+    tr = DeformationTracker(mesh, cam, ref, FlowSettings(margin_px=10))
+    x0, y0, w, h = tr.roi
+    uv, _ = cam.project(mesh.vertices)
+    assert w < 0.7 * cam.width and h < 0.7 * cam.height
+    assert x0 <= uv[:, 0].min() - 9 and x0 + w >= uv[:, 0].max() + 9
+    F = smooth_flow(cam.height, cam.width, 2.0)
+    d = tr.track(Frame(warp(img, F), depth, 1e5))
+    assert d.valid_fraction == 1.0
+    assert np.abs(d.flow - true_flow_at(F, tr.uv_ref)).max() < 0.3
