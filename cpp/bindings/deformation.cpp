@@ -1,5 +1,154 @@
+// Private bindings for the RGBD deformation stage (use bubble_rt.deformation instead).
+// bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
+#include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-namespace py = pybind11;
+#include <cstdint>
+#include <cstring>
+#include <tuple>
 
-void bind_deformation(py::module_& /*m*/) {}
+#include "depth_fill.h"
+#include "errors.h"
+#include "lifting.h"
+#include "optical_flow.h"
+
+namespace py = pybind11;
+using bubble::RowMatrixX2d;
+using bubble::RowMatrixX3d;
+
+namespace {
+
+using U8Image = py::array_t<std::uint8_t, py::array::c_style>;
+using F32Image = py::array_t<float, py::array::c_style | py::array::forcecast>;
+using F64Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using FlagVector = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>;
+
+// A cv::Mat header over a numpy RGB image (no copy).
+cv::Mat rgb_view(const U8Image& rgb) {
+  bubble::require(rgb.ndim() == 3 && rgb.shape(2) == 3, "rgb must be H x W x 3 uint8");
+  return cv::Mat(static_cast<int>(rgb.shape(0)), static_cast<int>(rgb.shape(1)), CV_8UC3,
+                 const_cast<std::uint8_t*>(rgb.data()));
+}
+
+cv::Mat f32_view(const F32Image& img, const char* what) {
+  bubble::require(img.ndim() == 2, std::string(what) + " must be a 2-D H x W array");
+  return cv::Mat(static_cast<int>(img.shape(0)), static_cast<int>(img.shape(1)), CV_32F,
+                 const_cast<float*>(img.data()));
+}
+
+Eigen::Map<const RowMatrixX2d> uv_view(const F64Array& uv) {
+  bubble::require(uv.ndim() == 2 && uv.shape(1) == 2, "uv must be N x 2");
+  return Eigen::Map<const RowMatrixX2d>(uv.data(), uv.shape(0), 2);
+}
+
+template <typename T>
+py::array_t<T> mat_to_array(const cv::Mat& m, int channels) {
+  std::vector<py::ssize_t> shape = {m.rows, m.cols};
+  if (channels > 1) shape.push_back(channels);
+  py::array_t<T> out(shape);
+  const size_t row_bytes = static_cast<size_t>(m.cols) * channels * sizeof(T);
+  for (int y = 0; y < m.rows; ++y)
+    std::memcpy(reinterpret_cast<char*>(out.mutable_data()) + y * row_bytes, m.ptr(y), row_bytes);
+  return out;
+}
+
+}  // namespace
+
+void bind_deformation(py::module_& m) {
+  py::class_<bubble::OpticalFlow>(m, "_OpticalFlow")
+      .def(py::init([](int method, int dis_preset, double pyr_scale, int levels, int winsize,
+                       int iterations, int poly_n, double poly_sigma, bool gaussian, double scale,
+                       bool forward_backward, int dis_finest_scale, int dis_refinement_iterations) {
+             bubble::FlowParams p;
+             bubble::require(method == 0 || method == 1, "method must be 0 (Farneback) or 1 (DIS)");
+             p.method = static_cast<bubble::FlowMethod>(method);
+             p.dis_preset = dis_preset;
+             p.farneback = {pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian};
+             p.scale = scale;
+             p.forward_backward = forward_backward;
+             p.dis_finest_scale = dis_finest_scale;
+             p.dis_refinement_iterations = dis_refinement_iterations;
+             return new bubble::OpticalFlow(p);
+           }),
+           py::arg("method"), py::arg("dis_preset"), py::arg("pyr_scale"), py::arg("levels"),
+           py::arg("winsize"), py::arg("iterations"), py::arg("poly_n"), py::arg("poly_sigma"),
+           py::arg("gaussian"), py::arg("scale"), py::arg("forward_backward"),
+           py::arg("dis_finest_scale") = -1, py::arg("dis_refinement_iterations") = -1)
+      .def(
+          "set_reference",
+          [](bubble::OpticalFlow& self, const U8Image& rgb, int x, int y, int w, int h) {
+            cv::Mat img = rgb_view(rgb);
+            py::gil_scoped_release release;
+            self.set_reference(img, cv::Rect(x, y, w, h));
+          },
+          py::arg("rgb"), py::arg("x"), py::arg("y"), py::arg("w"), py::arg("h"))
+      .def(
+          "compute",
+          [](bubble::OpticalFlow& self, const U8Image& rgb) {
+            cv::Mat img = rgb_view(rgb);
+            py::gil_scoped_release release;
+            self.compute(img);
+          },
+          py::arg("rgb"))
+      .def(
+          "sample",
+          [](const bubble::OpticalFlow& self, const F64Array& uv, double fb_threshold) {
+            auto pts = uv_view(uv);
+            RowMatrixX2d flow(pts.rows(), 2);
+            Eigen::VectorXd fb(pts.rows());
+            FlagVector flags = FlagVector::Zero(pts.rows());
+            {
+              py::gil_scoped_release release;
+              const bubble::FlowField* bwd = self.backward().empty() ? nullptr : &self.backward();
+              bubble::sample_flow(self.forward(), bwd, pts, fb_threshold, flow, fb, flags);
+            }
+            return std::make_tuple(flow, fb, flags);
+          },
+          py::arg("uv"), py::arg("fb_threshold"))
+      .def("dense",
+           [](const bubble::OpticalFlow& self) {
+             const bubble::FlowField& f = self.forward();
+             bubble::require(!f.empty(), "no flow has been computed");
+             return std::make_tuple(mat_to_array<float>(f.flow, 2), f.x0, f.y0, f.scale);
+           })
+      .def_property_readonly("roi", [](const bubble::OpticalFlow& self) {
+        const cv::Rect r = self.roi();
+        return std::make_tuple(r.x, r.y, r.width, r.height);
+      });
+
+  m.def(
+      "_fill_depth",
+      [](const F32Image& depth, int smooth_iterations, int smooth_max_level) {
+        cv::Mat d = f32_view(depth, "depth");
+        cv::Mat filled, level;
+        {
+          py::gil_scoped_release release;
+          bubble::fill_depth(d, filled, level, smooth_iterations, smooth_max_level);
+        }
+        return std::make_tuple(mat_to_array<float>(filled, 1),
+                               mat_to_array<std::uint8_t>(level, 1));
+      },
+      py::arg("depth"), py::arg("smooth_iterations") = 4, py::arg("smooth_max_level") = 254);
+
+  m.def(
+      "_lift_pixels",
+      [](const F32Image& filled, const U8Image& level, const F64Array& uv, double fx, double fy,
+         double cx, double cy, int max_fill_level) {
+        cv::Mat d = f32_view(filled, "filled depth");
+        bubble::require(level.ndim() == 2, "level must be a 2-D H x W uint8 array");
+        cv::Mat l(static_cast<int>(level.shape(0)), static_cast<int>(level.shape(1)), CV_8U,
+                  const_cast<std::uint8_t*>(level.data()));
+        auto pts = uv_view(uv);
+        RowMatrixX3d points(pts.rows(), 3);
+        FlagVector flags = FlagVector::Zero(pts.rows());
+        {
+          py::gil_scoped_release release;
+          bubble::lift_pixels(d, l, pts, bubble::PinholeIntrinsics{fx, fy, cx, cy}, max_fill_level,
+                              points, flags);
+        }
+        return std::make_tuple(points, flags);
+      },
+      py::arg("filled"), py::arg("level"), py::arg("uv"), py::arg("fx"), py::arg("fy"),
+      py::arg("cx"), py::arg("cy"), py::arg("max_fill_level"));
+}

@@ -1,0 +1,50 @@
+// Node lifting: flow sampled at node projections, displaced pixel back-projected through depth.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <opencv2/core.hpp>
+
+#include "optical_flow.h"
+
+namespace bubble {
+
+using RowMatrixX2d = Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>;
+using RowMatrixX3d = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
+
+// Per-node reasons a lifted node is not trusted (bit flags; 0 = valid).
+enum LiftFlag : std::uint8_t {
+  kOutsideImage = 1,    // reference or displaced projection outside the image / flow ROI
+  kInvalidDepth = 2,    // depth missing, or filled from a hole larger than allowed
+  kFlowUnreliable = 4,  // forward-backward inconsistency above the threshold
+  kNonFinite = 8,       // non-finite input or result
+};
+
+struct PinholeIntrinsics {
+  double fx, fy, cx, cy;
+};
+
+struct LiftParams {
+  // Largest pyramid level (see fill_depth) a depth sample may come from: holes up to about
+  // 2^max_fill_level pixels across are bridged, larger ones flag the node.
+  int max_fill_level = 4;
+  // Forward-backward error above which the flow at a node is unreliable (pixels).
+  double fb_threshold = 1.0;
+};
+
+// Flow at each pixel (N x 2) from `forward`, and the forward-backward error (N; 0 without a
+// backward field). flags gets kOutsideImage / kFlowUnreliable / kNonFinite bits.
+void sample_flow(const FlowField& forward, const FlowField* backward,
+                 const Eigen::Ref<const RowMatrixX2d>& uv, double fb_threshold,
+                 Eigen::Ref<RowMatrixX2d> flow, Eigen::Ref<Eigen::VectorXd> fb_error,
+                 Eigen::Ref<Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>> flags);
+
+// Back-projects pixels (N x 2) through the filled depth map (bilinear) into camera-frame points
+// (N x 3, metres). `level` is fill_depth's provenance map. Adds kOutsideImage / kInvalidDepth /
+// kNonFinite bits to flags; flagged nodes get the point (0, 0, 0).
+void lift_pixels(const cv::Mat& filled, const cv::Mat& level,
+                 const Eigen::Ref<const RowMatrixX2d>& uv, const PinholeIntrinsics& K,
+                 int max_fill_level, Eigen::Ref<RowMatrixX3d> points,
+                 Eigen::Ref<Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>> flags);
+
+}  // namespace bubble

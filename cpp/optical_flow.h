@@ -1,0 +1,80 @@
+// Dense optical flow from a reference image to the current one, over a region of interest.
+#pragma once
+
+#include <opencv2/core.hpp>
+#include <opencv2/video/tracking.hpp>
+
+namespace bubble {
+
+enum class FlowMethod { kFarneback = 0, kDis = 1 };
+
+// cv::calcOpticalFlowFarneback parameters. Defaults are OpenCV's documented example values;
+// FarnebackParams::Heavy() is the public implementation's heavier set.
+struct FarnebackParams {
+  double pyr_scale = 0.5;
+  int levels = 3;
+  int winsize = 15;
+  int iterations = 3;
+  int poly_n = 5;
+  double poly_sigma = 1.2;
+  bool gaussian = false;  // OPTFLOW_FARNEBACK_GAUSSIAN window instead of a box
+  static FarnebackParams Heavy() { return {0.5, 30, 50, 5, 7, 1.5, true}; }
+};
+
+struct FlowParams {
+  FlowMethod method = FlowMethod::kDis;
+  // cv::DISOpticalFlow preset: 0 ultrafast, 1 fast, 2 medium.
+  int dis_preset = 2;
+  // Overrides of the preset (-1 keeps the preset's value): finest pyramid level the flow is
+  // computed at (0 = full resolution of the working image) and variational refinement
+  // iterations.
+  int dis_finest_scale = -1;
+  int dis_refinement_iterations = -1;
+  FarnebackParams farneback;
+  // Images are resized by this factor (0 < scale <= 1) before the flow; flow is returned in
+  // full-resolution pixels.
+  double scale = 1.0;
+  // Also compute the backward flow (current -> reference) for a consistency check.
+  bool forward_backward = false;
+};
+
+// A flow field over a sub-image, possibly at reduced resolution. Full-resolution pixel
+// (u, v) sits at field coordinates ((u - x0 + 0.5) * scale - 0.5, (v - y0 + 0.5) * scale - 0.5).
+struct FlowField {
+  cv::Mat flow;  // CV_32FC2, field pixels
+  int x0 = 0;
+  int y0 = 0;
+  double scale = 1.0;
+  bool empty() const { return flow.empty(); }
+  // Bilinear flow at a full-resolution pixel, in full-resolution pixels. False when the pixel
+  // lies outside the field.
+  bool sample(double u, double v, double* du, double* dv) const;
+};
+
+class OpticalFlow {
+ public:
+  explicit OpticalFlow(const FlowParams& params);
+  // rgb: 8-bit 3-channel RGB image; roi clipped to the image.
+  void set_reference(const cv::Mat& rgb, cv::Rect roi);
+  // Computes the flow reference -> rgb over the ROI (and back when forward_backward).
+  void compute(const cv::Mat& rgb);
+  const FlowField& forward() const { return forward_; }
+  const FlowField& backward() const { return backward_; }
+  const FlowParams& params() const { return params_; }
+  cv::Rect roi() const { return roi_; }
+  cv::Size image_size() const { return size_; }
+
+ private:
+  cv::Mat prepare(const cv::Mat& rgb) const;
+  void run(const cv::Mat& from, const cv::Mat& to, cv::Mat& out);
+
+  FlowParams params_;
+  cv::Ptr<cv::DISOpticalFlow> dis_;
+  cv::Mat reference_;  // grey ROI at working scale
+  cv::Rect roi_;
+  cv::Size size_;
+  FlowField forward_;
+  FlowField backward_;
+};
+
+}  // namespace bubble

@@ -1,0 +1,151 @@
+"""`bubble-rt estimate`: run the force estimator over a recording, write per-frame JSON.
+
+    bubble-rt estimate RECORDING --reference-frames 0-4 --mesh medium --json OUT
+        [--flow dis_medium] [--flow-scale 1.0] [--frames 5-19] [--save-mesh mesh.vtk]
+
+The reference is captured from the given untouched frames; with a preset name for --mesh
+("coarse" | "medium" | "fine") the preset is fitted to that reference's depth surface (a mesh
+file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
+{"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
+(3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
+timings_ms, wrench (6 or null), solver_status}]}.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
+
+
+def parse_frames(spec: str, n: int) -> list[int]:
+    """Frame indices from "0-4", "0,2,5" or "3" (inclusive ranges), checked against n."""
+    out: list[int] = []
+    for part in spec.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            a, b = part.split("-", 1)
+            lo, hi = int(a), int(b)
+            if hi < lo:
+                raise ValueError(f"empty frame range {part!r}")
+            out.extend(range(lo, hi + 1))
+        else:
+            out.append(int(part))
+    if not out:
+        raise ValueError(f"no frames in {spec!r}")
+    bad = [i for i in out if not 0 <= i < n]
+    if bad:
+        raise ValueError(f"frame {bad[0]} out of range 0..{n - 1}")
+    return out
+
+
+#: Image-based methods of bubble_rt.deformation.FLOW_METHODS (not imported: --help stays fast).
+FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", help="recording folder (Punyo .npy layout or PNG folder)")
+    parser.add_argument(
+        "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
+    )
+    parser.add_argument(
+        "--mesh", default="medium", help="preset to fit (coarse|medium|fine) or a mesh file"
+    )
+    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument(
+        "--flow",
+        default=None,
+        choices=FLOW_CHOICES,
+        help="optical flow method (default: FlowSettings' default)",
+    )
+    parser.add_argument("--flow-scale", type=float, default=None, help="flow image scale (0, 1]")
+    parser.add_argument("--frames", default=None, help="frames to process (default: all)")
+    parser.add_argument("--save-mesh", default=None, help="write the fitted mesh here")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from bubble_rt.deformation import DeformationTracker, FlowSettings, Reference
+    from bubble_rt.estimator import ForceEstimator
+    from bubble_rt.fitting import fit_mesh
+    from bubble_rt.mesh import PRESET_NODES, Mesh
+    from bubble_rt.recordings import open_recording
+
+    rec = open_recording(args.recording)
+    n = len(rec)
+    try:
+        ref_idx = parse_frames(args.reference_frames, n)
+        todo = parse_frames(args.frames, n) if args.frames else list(range(n))
+    except ValueError as exc:
+        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
+        return 2
+    reference = Reference.capture([rec[i] for i in ref_idx])
+    if args.mesh in PRESET_NODES:
+        mesh = fit_mesh(Mesh.preset(args.mesh), reference, rec.camera)
+        mesh_info: dict[str, Any] = {"preset": args.mesh, "fitted": True}
+    else:
+        mesh = Mesh.load(args.mesh)
+        mesh_info = {"file": str(args.mesh), "fitted": False}
+    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
+    if args.save_mesh:
+        mesh.save(args.save_mesh)
+    settings = FlowSettings()
+    if args.flow:
+        settings = replace(settings, method=args.flow)
+    if args.flow_scale is not None:
+        settings = replace(settings, scale=args.flow_scale)
+    tracker = DeformationTracker(mesh, rec.camera, reference, settings)
+    estimator = ForceEstimator(mesh)
+    estimator.attach(tracker)
+    R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
+
+    frames_out = []
+    for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
+        frame = rec[i]
+        e = estimator.process(frame)
+        f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        frames_out.append(
+            {
+                "index": int(frame.index),
+                "t": float(frame.t),
+                "net_force": (R.T @ f_mesh).tolist(),
+                "net_force_mesh": f_mesh.tolist(),
+                "contact_nodes": int(np.count_nonzero(e.contact)),
+                "valid_node_fraction": float(e.valid_node_fraction),
+                "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
+                "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
+                "solver_status": getattr(e.info, "status", None),
+            }
+        )
+    cam = rec.camera
+    out = {
+        "recording": str(Path(args.recording).resolve()),
+        "layout": rec.layout,
+        "camera": {
+            "fx": cam.fx,
+            "fy": cam.fy,
+            "cx": cam.cx,
+            "cy": cam.cy,
+            "width": cam.width,
+            "height": cam.height,
+            "pose": cam.pose_matrix.tolist(),
+        },
+        "mesh": mesh_info,
+        "flow": {"method": settings.method, "scale": settings.scale},
+        "reference_frames": ref_idx,
+        "reference_pressure_pa": reference.pressure_pa,
+        "frames": frames_out,
+    }
+    Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0

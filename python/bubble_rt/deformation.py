@@ -1,0 +1,487 @@
+"""Node displacements from RGBD frames (method.md section 1).
+
+For every mesh node: project its reference position into the camera, sample the dense optical
+flow (reference RGB -> current RGB) there, lift the displaced pixel to 3D through the current,
+hole-filled depth map, and take ``U = x_cur - x_ref`` (N x 3, metres, mesh frame). Nodes the
+camera cannot see, with missing depth or unreliable flow are flagged and their displacement is
+filled from valid neighbours by a Laplacian solve over the mesh, so no NaN leaves this stage.
+
+The heavy parts (flow, hole filling, lifting) run in C++ (``bubble_rt._core``) with the GIL
+released. Method "oracle" skips images and asks the simulator's ground truth instead.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .frames import Frame, FrameError
+from .mesh import Mesh
+
+FLOW_METHODS = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy", "oracle")
+_DIS_PRESETS = {"dis_ultrafast": 0, "dis_fast": 1, "dis_medium": 2}
+
+#: Reasons a node is flagged (bits of ``Deformation.flags``).
+FLAG_OUTSIDE_IMAGE = 1
+FLAG_INVALID_DEPTH = 2
+FLAG_FLOW_UNRELIABLE = 4
+FLAG_NON_FINITE = 8
+FLAG_OUTLIER = 16
+
+
+@dataclass(frozen=True)
+class FlowSettings:
+    """How frames become node displacements.
+
+    Attributes:
+        method: "dis_ultrafast" | "dis_fast" | "dis_medium" (OpenCV DISOpticalFlow presets),
+            "farneback" (the Farneback fields below), "farneback_heavy" (the public
+            implementation's set: pyr_scale 0.5, levels 30, winsize 50, iterations 5, poly_n 7,
+            poly_sigma 1.5, Gaussian window), or "oracle" (simulator ground truth, no images).
+        scale: images are resized by this factor (0 < scale <= 1) before the flow.
+        margin_px: margin (pixels) around the box the mesh projects into; flow is computed
+            only inside that region.
+        forward_backward: also compute the backward flow and flag nodes whose round trip
+            misses by more than ``fb_threshold_px``.
+        fb_threshold_px: forward-backward tolerance, pixels.
+        max_fill_level: depth filled from pyramid level k bridges holes about 2^k pixels across;
+            nodes whose depth comes from a coarser level are flagged.
+        depth_smoothing: Gauss-Seidel sweeps that make the hole fill harmonic.
+        dis_finest_scale: finest pyramid level the DIS flow is computed at (0 = working
+            resolution). Default 1, i.e. finer than the ultrafast/fast presets' own 2 (medium
+            uses 1 anyway); None keeps each preset exactly as OpenCV defines it.
+        dis_refinement_iterations: variational refinement iterations; None keeps the preset.
+        pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian: Farneback
+            parameters for method "farneback" (defaults: OpenCV's documented example values
+            0.5, 3, 15, 3, 5, 1.2, box window).
+        clamp_rim: rim nodes are clamped (U = 0) whatever the images say; the edge of the
+            membrane is where depth is least reliable and the solver holds the rim anyway.
+        max_displacement_m: measured |U| above this flags the node (a depth edge, not the
+            membrane).
+        outlier_m: a node whose U differs by more than this from the median of its measured
+            neighbours is flagged (isolated depth/flow glitches); None disables.
+        anchor: "mesh" takes x_ref as the mesh node itself (the mesh is fitted to the reference
+            surface); "depth" lifts the node's pixel through the reference depth instead, so
+            that fitting residuals cancel exactly.
+    """
+
+    # Default from bench/deformation_bench.py: the fastest setting whose RMS flow error on the
+    # synthetic warp is <= 0.1 px (0.068 px): DIS ultrafast refined down to pyramid level 1.
+    method: str = "dis_ultrafast"
+    scale: float = 1.0
+    margin_px: int = 24
+    forward_backward: bool = False
+    fb_threshold_px: float = 1.0
+    max_fill_level: int = 3
+    depth_smoothing: int = 4
+    dis_finest_scale: int | None = 1
+    dis_refinement_iterations: int | None = None
+    pyr_scale: float = 0.5
+    levels: int = 3
+    winsize: int = 15
+    iterations: int = 3
+    poly_n: int = 5
+    poly_sigma: float = 1.2
+    gaussian: bool = False
+    clamp_rim: bool = True
+    max_displacement_m: float = 0.03
+    outlier_m: float | None = 0.004
+    anchor: str = "mesh"
+
+    def __post_init__(self) -> None:
+        if self.method not in FLOW_METHODS:
+            raise ValueError(f"flow method {self.method!r} unknown; choose one of {FLOW_METHODS}")
+        if not 0 < self.scale <= 1:
+            raise ValueError(f"flow scale must be in (0, 1], got {self.scale}")
+        if self.margin_px < 0:
+            raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
+        if self.anchor not in ("mesh", "depth"):
+            raise ValueError(f"anchor must be 'mesh' or 'depth', got {self.anchor!r}")
+
+    def farneback_params(self) -> dict[str, Any]:
+        """Farneback parameters in effect (the heavy set for method "farneback_heavy")."""
+        if self.method == "farneback_heavy":
+            return dict(
+                pyr_scale=0.5,
+                levels=30,
+                winsize=50,
+                iterations=5,
+                poly_n=7,
+                poly_sigma=1.5,
+                gaussian=True,
+            )
+        return dict(
+            pyr_scale=self.pyr_scale,
+            levels=self.levels,
+            winsize=self.winsize,
+            iterations=self.iterations,
+            poly_n=self.poly_n,
+            poly_sigma=self.poly_sigma,
+            gaussian=self.gaussian,
+        )
+
+
+@dataclass
+class Reference:
+    """The untouched sensor state that displacements and dp are measured against.
+
+    Attributes:
+        rgb: H x W x 3 uint8, per-pixel mean of the captured frames (the flow reference), or
+            None for image-less (oracle) frames.
+        depth: H x W float32 metres, per-pixel mean over the frames where the pixel is valid
+            (0 where it never is), or None.
+        pressure_pa: mean pressure, pascals.
+        t: time of the last captured frame, seconds.
+        n_frames: number of frames averaged.
+    """
+
+    rgb: NDArray[np.uint8] | None
+    depth: NDArray[np.float32] | None
+    pressure_pa: float
+    t: float = 0.0
+    n_frames: int = 1
+
+    @classmethod
+    def capture(cls, frames: Sequence[Frame] | Frame) -> Reference:
+        """Average one or more untouched frames (images must all have the same size)."""
+        if isinstance(frames, Frame):
+            frames = [frames]
+        frames = list(frames)
+        if not frames:
+            raise ValueError("Reference.capture needs at least one frame")
+        shapes = {f.shape for f in frames}
+        if len(shapes) > 1:
+            raise FrameError(f"reference frames differ in size: {sorted(map(str, shapes))}")
+        rgb = None
+        if all(f.rgb is not None for f in frames):
+            acc = np.zeros(frames[0].rgb.shape, np.float64)  # type: ignore[union-attr]
+            for f in frames:
+                acc += f.rgb  # type: ignore[arg-type]
+            rgb = np.clip(np.rint(acc / len(frames)), 0, 255).astype(np.uint8)
+        depth = None
+        if all(f.depth is not None for f in frames):
+            s = np.zeros(frames[0].depth.shape, np.float64)  # type: ignore[union-attr]
+            n = np.zeros(s.shape, np.int32)
+            for f in frames:
+                d = np.asarray(f.depth)
+                ok = np.isfinite(d) & (d > 0)
+                s[ok] += d[ok]
+                n += ok
+            depth = np.where(n > 0, s / np.maximum(n, 1), 0.0).astype(np.float32)
+        pressure = float(np.mean([f.pressure_pa for f in frames]))
+        return cls(rgb=rgb, depth=depth, pressure_pa=pressure, t=frames[-1].t, n_frames=len(frames))
+
+    def tare(self, frames: Sequence[Frame] | Frame) -> Reference:
+        """A fresh reference from new untouched frames (same as ``Reference.capture``)."""
+        return Reference.capture(frames)
+
+
+@dataclass
+class Deformation:
+    """Node displacements of one frame.
+
+    Attributes:
+        U: N x 3 displacements x_cur - x_ref, metres, mesh frame (never NaN).
+        valid: N bool, True where U was measured (False: filled from neighbours).
+        valid_fraction: mean of ``valid``.
+        dp: pressure now minus reference pressure, pascals.
+        timings_ms: {"flow": ms, "lift": ms}.
+        flags: N uint8 reason bits (FLAG_*), 0 for valid nodes.
+        flow: N x 2 flow sampled at the node projections (pixels), zeros for oracle.
+    """
+
+    U: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    valid_fraction: float
+    dp: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    flags: NDArray[np.uint8] | None = None
+    flow: NDArray[np.float64] | None = None
+
+
+def mesh_laplacian(mesh: Mesh) -> sp.csr_matrix:
+    """Uniform graph Laplacian (N x N, D - A) of the mesh edges."""
+    t = mesh.triangles
+    i = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
+    j = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    n = mesh.n_nodes
+    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    return (sp.diags(deg) - A).tocsr()
+
+
+def harmonic_fill(
+    L: sp.csr_matrix, values: NDArray[np.float64], known: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """Replace rows of ``values`` (N x k) where ``known`` is False by the harmonic interpolant
+    of the known rows over the graph Laplacian ``L``. Unknown nodes cut off from every known
+    node get 0 (a tiny diagonal shift keeps their block non-singular)."""
+    out = np.array(values, dtype=np.float64, copy=True)
+    unknown = ~known
+    if not unknown.any():
+        return out
+    if not known.any():
+        out[:] = 0.0
+        return out
+    iu = np.flatnonzero(unknown)
+    ik = np.flatnonzero(known)
+    Luu = L[iu][:, iu] + sp.identity(len(iu), format="csr") * 1e-9
+    rhs = -(L[iu][:, ik] @ out[ik])
+    sol = spla.spsolve(Luu.tocsc(), rhs)
+    out[iu] = np.asarray(sol).reshape(len(iu), -1)
+    out[~np.isfinite(out)] = 0.0
+    return out
+
+
+def _roi(uv: NDArray, ok: NDArray, camera: Camera, margin: int) -> tuple[int, int, int, int]:
+    if not ok.any():
+        return 0, 0, camera.width, camera.height
+    lo = np.floor(uv[ok].min(axis=0)).astype(int) - margin
+    hi = np.ceil(uv[ok].max(axis=0)).astype(int) + margin + 1
+    x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+    x1, y1 = min(int(hi[0]), camera.width), min(int(hi[1]), camera.height)
+    return x0, y0, max(x1 - x0, 8), max(y1 - y0, 8)
+
+
+class DeformationTracker:
+    """Turns frames into node displacements against a fixed reference.
+
+    Args:
+        mesh: the reference mesh (mesh frame; nodes on the reference surface).
+        camera: camera model; ``camera.pose`` maps camera to mesh coordinates.
+        reference: captured untouched state (its RGB is the flow reference).
+        settings: FlowSettings.
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        reference: Reference,
+        settings: FlowSettings | None = None,
+    ) -> None:
+        self.mesh = mesh
+        self.camera = camera
+        self.reference = reference
+        self.settings = settings or FlowSettings()
+        self._laplacian = mesh_laplacian(mesh)
+        self._rim = np.zeros(mesh.n_nodes, bool)
+        self._rim[mesh.boundary] = True
+        self._neighbours = _neighbour_table(self._laplacian)
+        uv, z = camera.project(mesh.vertices)
+        self.uv_ref = np.ascontiguousarray(uv, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            inside = (
+                np.isfinite(uv).all(axis=1)
+                & (z > 0)
+                & (uv[:, 0] >= -0.5)
+                & (uv[:, 1] >= -0.5)
+                & (uv[:, 0] <= camera.width - 0.5)
+                & (uv[:, 1] <= camera.height - 0.5)
+            )
+        self.visible = inside
+        self._flow: Any = None
+        self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
+        self.set_reference(reference)
+
+    def set_reference(self, reference: Reference) -> None:
+        """Measure against a new reference from now on (tare); mesh and camera stay."""
+        from . import _core
+
+        camera, s = self.camera, self.settings
+        self.x_ref = np.array(self.mesh.vertices, dtype=np.float64)
+        if s.method == "oracle":
+            self.reference = reference
+            return
+        if reference.rgb is None or reference.depth is None:
+            raise FrameError("reference has no rgb/depth: image methods need an RGBD reference")
+        Frame(reference.rgb, None, reference.pressure_pa).validate(camera)
+        if reference.depth.shape != (camera.height, camera.width):
+            raise FrameError(
+                f"reference depth size {reference.depth.shape[1]} x {reference.depth.shape[0]} "
+                f"differs from the camera's {camera.width} x {camera.height}"
+            )
+        if self._flow is None:
+            self._flow = _core._OpticalFlow(
+                method=1 if s.method in _DIS_PRESETS else 0,
+                dis_preset=_DIS_PRESETS.get(s.method, 2),
+                scale=s.scale,
+                forward_backward=s.forward_backward,
+                dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
+                dis_refinement_iterations=(
+                    -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
+                ),
+                **s.farneback_params(),
+            )
+        self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
+        self.reference = reference
+        if s.anchor == "depth":
+            pts, flags = self._lift(reference.depth, self.uv_ref)
+            ok = flags == 0
+            self.x_ref[ok] = pts[ok]
+
+    # ------------------------------------------------------------------ helpers
+    def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
+        s = self.settings
+        return _lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
+
+    def _finish(
+        self, U: NDArray, flags: NDArray, dp: float, timings: dict[str, float], flow: NDArray
+    ) -> Deformation:
+        s = self.settings
+        flags = flags.astype(np.uint8)
+        flags[~np.isfinite(U).all(axis=1)] |= FLAG_NON_FINITE
+        U = np.where(np.isfinite(U), U, 0.0)
+        with np.errstate(invalid="ignore"):
+            flags[np.linalg.norm(U, axis=1) > s.max_displacement_m] |= FLAG_OUTLIER
+        if s.outlier_m is not None:
+            flags[_neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
+        valid = flags == 0
+        known = valid.copy()
+        Uk = U.copy()
+        if s.clamp_rim:
+            Uk[self._rim] = 0.0
+            known |= self._rim
+        U = harmonic_fill(self._laplacian, Uk, known)
+        return Deformation(
+            U=U,
+            valid=valid,
+            valid_fraction=float(valid.mean()),
+            dp=dp,
+            timings_ms=timings,
+            flags=flags,
+            flow=flow,
+        )
+
+    # ------------------------------------------------------------------ per frame
+    def track(self, frame: Frame) -> Deformation:
+        """Displacements of the mesh nodes in ``frame`` against the reference."""
+        n = self.mesh.n_nodes
+        dp = float(frame.pressure_pa) - float(self.reference.pressure_pa)
+        if self.settings.method == "oracle":
+            t0 = time.perf_counter()
+            if frame.truth is None:
+                raise FrameError("truth is missing: method 'oracle' needs simulator frames")
+            x_cur = np.asarray(frame.truth.displace(self.x_ref), dtype=np.float64)
+            if x_cur.shape != (n, 3):
+                raise FrameError(f"truth.displace returned shape {x_cur.shape}, want ({n}, 3)")
+            flags = np.zeros(n, np.uint8)
+            flags[~np.isfinite(x_cur).all(axis=1)] |= FLAG_NON_FINITE
+            timings = {"flow": 0.0, "lift": (time.perf_counter() - t0) * 1e3}
+            return self._finish(x_cur - self.x_ref, flags, dp, timings, np.zeros((n, 2)))
+        frame.validate(self.camera, need_images=True)
+        t0 = time.perf_counter()
+        self._flow.compute(np.ascontiguousarray(frame.rgb))
+        t1 = time.perf_counter()
+        flow, _fb, flags = self._flow.sample(self.uv_ref, self.settings.fb_threshold_px)
+        flow = np.asarray(flow)
+        flags = np.asarray(flags, dtype=np.uint8).copy()
+        flags[~self.visible] |= FLAG_OUTSIDE_IMAGE
+        x_cur, lift_flags = self._lift(frame.depth, self.uv_ref + flow)  # type: ignore[arg-type]
+        flags |= lift_flags
+        U = x_cur - self.x_ref
+        out = self._finish(U, flags, dp, {}, flow)
+        t3 = time.perf_counter()
+        out.timings_ms = {"flow": (t1 - t0) * 1e3, "lift": (t3 - t1) * 1e3}
+        return out
+
+
+def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")  # type: ignore[no-any-return]
+
+
+def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:
+    """N x max_degree neighbour indices from a Laplacian, padded with -1."""
+    n = L.shape[0]
+    rows = [[j for j in L.indices[L.indptr[i] : L.indptr[i + 1]] if j != i] for i in range(n)]
+    width = max(len(r) for r in rows)
+    out = np.full((n, width), -1, dtype=np.intp)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+    return out
+
+
+def _neighbour_outliers(
+    U: NDArray, measured: NDArray[np.bool_], nb: NDArray[np.intp], tol: float
+) -> NDArray[np.bool_]:
+    """Measured nodes whose U is further than ``tol`` from the component-wise median of their
+    measured neighbours (needs at least two of them)."""
+    ok = (nb >= 0) & measured[np.maximum(nb, 0)]
+    G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
+    enough = ok.sum(axis=1) >= 2
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: handled by `enough`
+        med = np.nanmedian(G, axis=1)
+    dev = np.linalg.norm(U - np.nan_to_num(med), axis=1)
+    return measured & enough & (dev > tol)
+
+
+def lift_pixels(
+    depth: NDArray,
+    uv: NDArray,
+    camera: Camera,
+    *,
+    max_fill_level: int = 3,
+    depth_smoothing: int = 4,
+) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
+    """Back-project pixels through a depth image: the lifting step on its own.
+
+    Args:
+        depth: H x W depth (metres of camera z, 0 / NaN invalid); holes are filled first.
+        uv: N x 2 pixel coordinates (u right, v down; pixel centres at integers).
+        camera: gives intrinsics and the camera -> mesh pose.
+
+    Returns:
+        Mesh-frame points (N x 3, metres; zeros where flagged) and FLAG_* bits (N uint8).
+    """
+    d = np.asarray(depth, dtype=np.float32)
+    if d.shape != (camera.height, camera.width):
+        raise FrameError(
+            f"depth shape {d.shape} differs from the camera's {camera.height} x {camera.width}"
+        )
+    pts, flags = _lift(
+        d, np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera, max_fill_level, depth_smoothing
+    )
+    pts[flags != 0] = 0.0
+    return pts, flags
+
+
+def _lift(
+    depth: NDArray, uv: NDArray, cam: Camera, max_fill_level: int, smoothing: int
+) -> tuple[NDArray, NDArray]:
+    """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
+    from . import _core
+
+    filled, level = _core._fill_depth(
+        np.ascontiguousarray(depth, dtype=np.float32), smoothing, max_fill_level + 1
+    )
+    pts, flags = _core._lift_pixels(
+        filled,
+        level,
+        np.ascontiguousarray(uv, dtype=np.float64),
+        cam.fx,
+        cam.fy,
+        cam.cx,
+        cam.cy,
+        max_fill_level,
+    )
+    flags = np.asarray(flags, dtype=np.uint8).copy()
+    pts = np.asarray(pts)
+    if cam.has_distortion:
+        # The C++ lift is pinhole; with distortion re-project the sampled depths exactly.
+        ok = flags == 0
+        pts = np.zeros((len(uv), 3))
+        pts[ok] = cam.to_camera(cam.backproject(uv[ok], _sample_z(filled, uv[ok])))
+    return cam.to_mesh(pts), flags
