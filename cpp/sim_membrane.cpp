@@ -172,6 +172,12 @@ double SimMembrane::volume(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) cons
 
 bool SimMembrane::factorize(const SimRowMatrixX3d& x, double volume_scale,
                             const SimRowMatrixX9d& blocks, double shift, bool project) {
+  assemble(x, volume_scale, blocks, shift, project);
+  return factorize_assembled();
+}
+
+void SimMembrane::assemble(const SimRowMatrixX3d& x, double volume_scale,
+                           const SimRowMatrixX9d& blocks, double shift, bool project) {
   require(x.rows() == n_nodes_, "positions must be N x 3 with N the rest node count");
   require(blocks.rows() == n_nodes_ || blocks.rows() == 0, "blocks must be N x 9 or empty");
   double* val = H_.valuePtr();
@@ -241,6 +247,11 @@ bool SimMembrane::factorize(const SimRowMatrixX3d& x, double volume_scale,
   }
   if (shift != 0.0)
     for (int r = 0; r < n_free_; ++r) val[diag_slot_[r]] += shift;
+  assembled_ = true;
+}
+
+bool SimMembrane::factorize_assembled() {
+  require(assembled_, "nothing assembled yet");
   if (!analyzed_) {
     ldlt_.analyzePattern(H_);
     analyzed_ = true;
@@ -248,6 +259,24 @@ bool SimMembrane::factorize(const SimRowMatrixX3d& x, double volume_scale,
   ldlt_.factorize(H_);
   factorized_ = ldlt_.info() == Eigen::Success;
   return factorized_;
+}
+
+SimRowMatrixX3d SimMembrane::multiply(const SimRowMatrixX3d& v) const {
+  require(assembled_, "nothing assembled yet");
+  require(v.rows() == n_nodes_, "v must be N x 3");
+  Eigen::VectorXd r(n_free_);
+  for (int i = 0; i < n_nodes_; ++i)
+    if (dof_[i] >= 0) r.segment<3>(dof_[i]) = v.row(i).transpose();
+  const Eigen::VectorXd y = H_.selfadjointView<Eigen::Lower>() * r;
+  SimRowMatrixX3d out = SimRowMatrixX3d::Zero(n_nodes_, 3);
+  for (int i = 0; i < n_nodes_; ++i)
+    if (dof_[i] >= 0) out.row(i) = y.segment<3>(dof_[i]).transpose();
+  return out;
+}
+
+long SimMembrane::factor_nnz() const {
+  require(factorized_, "no successful factorisation yet");
+  return static_cast<long>(ldlt_.matrixL().nestedExpression().nonZeros());
 }
 
 int SimMembrane::nonpositive_pivots() const {

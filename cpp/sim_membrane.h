@@ -36,6 +36,15 @@ class SimMembrane {
   // Hessian is clamped to positive semi-definite. False if the factorisation fails.
   bool factorize(const SimRowMatrixX3d& x, double volume_scale, const SimRowMatrixX9d& blocks,
                  double shift, bool project);
+  // The assembly step of `factorize` alone (H is kept for `multiply`).
+  void assemble(const SimRowMatrixX3d& x, double volume_scale, const SimRowMatrixX9d& blocks,
+                double shift, bool project);
+  // Factorise the last assembled H (the symbolic analysis is done once). False on failure.
+  bool factorize_assembled();
+  // H v with the last assembled H (rows of fixed nodes zero).
+  SimRowMatrixX3d multiply(const SimRowMatrixX3d& v) const;
+  // Nonzeros of the last factor L.
+  long factor_nnz() const;
   // Non-positive pivots of the last LDL^T factorisation (0: H positive definite).
   int nonpositive_pivots() const;
   // Solve H y = rhs with the last factorisation; rows of fixed nodes are returned as zero.
@@ -55,6 +64,7 @@ class SimMembrane {
   Eigen::SparseMatrix<double> H_;  // lower triangle, column-major
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Lower> ldlt_;
   bool analyzed_ = false;
+  bool assembled_ = false;
   bool factorized_ = false;
 };
 

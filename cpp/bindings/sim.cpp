@@ -62,6 +62,28 @@ void bind_sim(py::module_& m) {
           },
           py::arg("x"), py::arg("volume_scale"), py::arg("blocks"), py::arg("shift"),
           py::arg("project"))
+      .def(
+          "assemble",
+          [](SimMembrane& s, const SimRowMatrixX3d& x, double volume_scale,
+             const SimRowMatrixX9d& blocks, double shift, bool project) {
+            py::gil_scoped_release nogil;
+            s.assemble(x, volume_scale, blocks, shift, project);
+          },
+          py::arg("x"), py::arg("volume_scale"), py::arg("blocks"), py::arg("shift"),
+          py::arg("project"))
+      .def("factorize_assembled",
+           [](SimMembrane& s) {
+             py::gil_scoped_release nogil;
+             return s.factorize_assembled();
+           })
+      .def(
+          "multiply",
+          [](const SimMembrane& s, const SimRowMatrixX3d& v) {
+            py::gil_scoped_release nogil;
+            return s.multiply(v);
+          },
+          py::arg("v"))
+      .def_property_readonly("factor_nnz", &SimMembrane::factor_nnz)
       .def("nonpositive_pivots", &SimMembrane::nonpositive_pivots)
       .def(
           "solve",

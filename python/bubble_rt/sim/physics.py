@@ -63,9 +63,8 @@ DEFAULT_REST_DOME_HEIGHT = 0.0225
 #: indenter raises the pressure by about 0.45 kPa, as on the real sensor.
 DEFAULT_CHAMBER_VOLUME = 1.45e-3
 
-
-_DEBUG = False
-_PROJECT = True
+#: Residual (N) below which Newton refreshes the lagged friction normal force in place.
+_LAG_REFRESH_N = 1e-3
 
 
 class SimConvergenceError(RuntimeError):
@@ -133,7 +132,10 @@ class NewtonSettings:
     ``tolerance_n`` (N); ``max_iterations`` per (sub)step; a failing step is halved up to
     ``max_halvings`` times; inflation in ``inflation_steps`` equal pressure increments;
     Newton steps are capped at ``max_step_m`` per node. ``strict`` raises instead of
-    returning a state with ``converged=False``."""
+    returning a state with ``converged=False``. With ``reuse_factorization`` a Newton system
+    is first solved by conjugate gradients preconditioned with the previous factorisation
+    (relative tolerance ``cg_tolerance``, at most ``cg_max_iterations``), and factorised anew
+    only when that fails."""
 
     tolerance_n: float = 1.0e-8
     max_iterations: int = 40
@@ -141,6 +143,9 @@ class NewtonSettings:
     inflation_steps: int = 10
     max_step_m: float = 2.0e-3
     strict: bool = False
+    reuse_factorization: bool = True
+    cg_tolerance: float = 1.0e-7
+    cg_max_iterations: int = 15
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,6 +271,9 @@ class MembraneSim:
         self._lam = np.zeros(self._M)
         self._normals = np.zeros((self._M, 3))
         self._last_x = self._x
+        self._have_factor = False
+        #: Counters for benchmarks: Newton iterations, fresh factorisations, CG iterations.
+        self.stats = {"newton_iterations": 0, "factorizations": 0, "cg_iterations": 0, "solves": 0}
         self._last_prob = self._problem(None, None)
 
     # ------------------------------------------------------------------ public API
@@ -407,15 +415,6 @@ class MembraneSim:
             cand = x0 + (x0 - self._x_prev)
             if self._energy(cand, prob) < self._energy(x0, prob):
                 x = cand
-        # Nodes the indenter moved into start on its surface: Newton on a cubic penalty from
-        # deep inside only quarters the residual per iteration.
-        d, n = indenter.distance(x, pose)
-        inside = (d < 0) & self._free
-        if inside.any() and _PROJECT:
-            cand = x.copy()
-            cand[inside] -= d[inside, None] * n[inside]
-            if self._energy(cand, prob) < self._energy(x, prob):
-                x = cand
         use_friction = bool(self.contact_settings.friction)
         passes = self.contact_settings.friction_passes if use_friction else 1
         lam, normals = self._lam, self._normals
@@ -432,7 +431,8 @@ class MembraneSim:
                 break
             lam_new, normals = self._normal_forces(x, prob)
             scale = max(float(lam_new.max(initial=0.0)), 1e-12)
-            change = float(np.abs(lam_new - lam).max(initial=0.0)) / scale
+            used = prob.lam if prob.lam is not None else lam
+            change = float(np.abs(lam_new - used).max(initial=0.0)) / scale
             lam = lam_new
             if change < self.contact_settings.lag_tolerance:
                 break
@@ -565,8 +565,23 @@ class MembraneSim:
         x = x.copy()
         E, g, dV, blocks = self._gradient(x, prob)
         res = float(np.abs(g).max())
+        lag_settled = prob.lam is None
         for it in range(1, ns.max_iterations + 1):
-            if res <= ns.tolerance_n:
+            if prob.lam is not None and res < _LAG_REFRESH_N:
+                # Refresh the lagged normal force inside the iteration once near equilibrium:
+                # cheaper than re-solving from scratch after each lag update.
+                lam_new, normals = self._normal_forces(x, prob)
+                scale = max(float(lam_new.max(initial=0.0)), 1e-12)
+                lag_settled = (
+                    float(np.abs(lam_new - prob.lam).max(initial=0.0)) / scale
+                    < self.contact_settings.lag_tolerance
+                )
+                if not lag_settled:
+                    prob.lam = lam_new
+                    prob.tangent = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]
+                    E, g, dV, blocks = self._gradient(x, prob)
+                    res = float(np.abs(g).max())
+            if res <= ns.tolerance_n and lag_settled:
                 return x, True, it - 1, res
             V = float(self._sys.volume_grad(x)[0])
             _, dE, d2E = self._gas_terms(V, prob)
@@ -575,6 +590,15 @@ class MembraneSim:
             B_all = B_psd if bc is None or cc is None else (bc + cc).reshape(self._M, 9)
             d = None
             project = False
+            if self._have_factor and ns.reuse_factorization:
+                # The last factorisation preconditions CG on the current exact Hessian; it is
+                # refreshed only when CG is slow or the Hessian is not positive definite.
+                self._sys.assemble(x, dE, B_all, 0.0, False)
+                # Inexact Newton: a loose solve far from equilibrium, a tight one near it.
+                rtol = min(1e-2, max(ns.cg_tolerance, 0.1 * res))
+                d = self._pcg(g, dV, d2E, rtol)
+                if d is not None and float(np.sum(d * g)) >= 0:
+                    d = None
             # Exact Hessian first; if it is not positive definite, PSD-projected parts.
             for project, shift, B in (
                 (False, 0.0, B_all),
@@ -582,10 +606,15 @@ class MembraneSim:
                 (True, 0.0, B_psd),
                 (True, 1e-3 * self.material.mu_t, B_psd),
             ):
+                if d is not None:
+                    break
+                self._have_factor = False
+                self.stats["factorizations"] += 1
                 if not self._sys.factorize(x, dE, B, shift, project):
                     continue
                 if self._sys.nonpositive_pivots() > 0:
                     continue
+                self._have_factor = True
                 d = self._direction(g, dV, d2E)
                 if float(np.sum(d * g)) < 0:
                     break
@@ -617,11 +646,63 @@ class MembraneSim:
             if not accepted:
                 return x, False, it, res
             x = x_new
+            self.stats["newton_iterations"] += 1
             E, g, dV, blocks = self._gradient(x, prob)
             res = float(np.abs(g).max())
-            if _DEBUG:
-                print(f"  it {it} res {res:.3g} alpha {alpha:.3g} proj {project} E {E:.17g}")
-        return x, res <= ns.tolerance_n, ns.max_iterations, res
+            log.debug(
+                "newton %d: residual %.3g N, step %.3g, projected %s", it, res, alpha, project
+            )
+        return x, res <= ns.tolerance_n and lag_settled, ns.max_iterations, res
+
+    def _pcg(self, g: Array, dV: Array, d2E: float, rtol: float) -> Array | None:
+        """Solve (H + d2E u u^T) d = -g by CG preconditioned with the last factorisation
+        (Sherman-Morrison for the rank-one part). None when it does not converge quickly or
+        meets a direction of non-positive curvature."""
+        sys = self._sys
+        u = dV.copy()
+        u[~self._free] = 0.0
+        c = d2E
+        w = sys.solve(u) if c else None
+        self.stats["solves"] += 1 if c else 0
+        den = 1.0 + c * float(np.sum(u * w)) if w is not None else 1.0
+
+        def op(v: Array) -> Array:
+            out = sys.multiply(v)
+            if c:
+                out += (c * float(np.sum(u * v))) * u
+            return out
+
+        def prec(r: Array) -> Array:
+            z = sys.solve(r)
+            self.stats["solves"] += 1
+            if w is not None:
+                z -= w * (c * float(np.sum(u * z)) / den)
+            return z
+
+        b = -g
+        nb = float(np.sqrt(np.sum(b * b)))
+        xk = np.zeros_like(b)
+        r = b.copy()
+        z = prec(r)
+        p = z.copy()
+        rz = float(np.sum(r * z))
+        for k in range(1, self.newton.cg_max_iterations + 1):
+            Ap = op(p)
+            pAp = float(np.sum(p * Ap))
+            if not pAp > 0:
+                return None
+            a = rz / pAp
+            xk += a * p
+            r -= a * Ap
+            if float(np.sqrt(np.sum(r * r))) <= rtol * nb:
+                self.stats["cg_iterations"] += k
+                return xk
+            z = prec(r)
+            rz_new = float(np.sum(r * z))
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.stats["cg_iterations"] += self.newton.cg_max_iterations
+        return None
 
     def _direction(self, g: Array, dV: Array, d2E: float) -> Array:
         """Newton direction with (A + c u u^T) d = -g via Sherman-Morrison."""
