@@ -131,6 +131,10 @@ def test_from_spec_builds_user_shapes_and_rejects_bad_input():
         }
     )
     assert isinstance(u, Union) and len(u.shapes) == 4
+    cap = from_spec({"type": "capsule", "radius": 0.002, "length": 0.01, "center": [0, 0, 0.01]})
+    assert np.allclose(cap.a, (0, 0, 0.005)) and np.allclose(cap.b, (0, 0, 0.015))
+    box = from_spec({"type": "box", "size": [0.02, 0.01, 0.004]})
+    assert np.allclose(box.half_extents, (0.01, 0.005, 0.002))
     with pytest.raises(ValueError, match="radius"):
         from_spec({"type": "sphere"})
     with pytest.raises(ValueError, match="unknown indenter type"):

@@ -239,8 +239,10 @@ def from_spec(spec: str | Mapping[str, Any]) -> Shape:
     """An indenter from a preset name or a mapping (e.g. a scene's TOML table).
 
     Mapping forms (lengths in metres): {"type": "sphere", "radius", "center"?},
-    {"type": "capsule", "a", "b", "radius"}, {"type": "box", "half_extents", "center"?,
-    "rounding"?}, {"type": "union", "shapes": [spec, ...]}, {"type": "preset", "name"}.
+    {"type": "capsule", "a", "b", "radius"} or {"type": "capsule", "radius", "length",
+    "center"?, "axis"? (default +z)}, {"type": "box", "half_extents" or "size" (full
+    lengths), "center"?, "rounding"?}, {"type": "union", "shapes": [spec, ...]},
+    {"type": "preset", "name"}.
     """
     if isinstance(spec, str):
         return preset(spec)
@@ -252,8 +254,17 @@ def from_spec(spec: str | Mapping[str, Any]) -> Shape:
         if kind == "sphere":
             return Sphere(float(args["radius"]), tuple(args.get("center", (0.0, 0.0, 0.0))))
         if kind == "capsule":
+            if "a" not in args and "length" in args:
+                # Centre / axis / cylinder length form.
+                c = _vec3(args.get("center", (0.0, 0.0, 0.0)), "center")
+                ax = _vec3(args.get("axis", (0.0, 0.0, 1.0)), "axis")
+                ax = ax / np.linalg.norm(ax)
+                h = 0.5 * float(args["length"]) * ax
+                return Capsule(tuple(c - h), tuple(c + h), float(args["radius"]))
             return Capsule(tuple(args["a"]), tuple(args["b"]), float(args["radius"]))
         if kind == "box":
+            if "half_extents" not in args and "size" in args:
+                args["half_extents"] = tuple(0.5 * _vec3(args["size"], "size"))
             return Box(
                 tuple(args["half_extents"]),
                 tuple(args.get("center", (0.0, 0.0, 0.0))),
