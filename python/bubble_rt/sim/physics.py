@@ -179,7 +179,8 @@ class SimState:
 
     @property
     def net_contact_force(self) -> Array:
-        """Sum (3,) N of the contact forces over non-rim nodes... and rim nodes (all nodes)."""
+        """Total force (3,) N the indenter applies on the membrane (all nodes; an indenter
+        touching the clamped rim also loads rim nodes, see ``contact_forces``)."""
         return self.contact_forces.sum(axis=0)
 
 
