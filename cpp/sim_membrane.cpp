@@ -125,7 +125,7 @@ SimMembrane::SimMembrane(const SimRowMatrixX3d& rest, const SimRowMatrixX3i& tri
   for (int r = 0; r < n_free_; ++r) diag_slot_[r] = slot(r, r);
 }
 
-double SimMembrane::energy(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) const {
+double SimMembrane::energy(const SimRef3& x, SimRowMatrixX3d* grad) const {
   require(x.rows() == n_nodes_, "positions must be N x 3 with N the rest node count");
   if (grad) grad->setZero(n_nodes_, 3);
   const double inf = std::numeric_limits<double>::infinity();
@@ -152,7 +152,7 @@ double SimMembrane::energy(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) cons
   return total;
 }
 
-double SimMembrane::volume(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) const {
+double SimMembrane::volume(const SimRef3& x, SimRowMatrixX3d* grad) const {
   require(x.rows() == n_nodes_, "positions must be N x 3 with N the rest node count");
   if (grad) grad->setZero(n_nodes_, 3);
   double v = 0.0;
@@ -170,14 +170,14 @@ double SimMembrane::volume(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) cons
   return v;
 }
 
-bool SimMembrane::factorize(const SimRowMatrixX3d& x, double volume_scale,
-                            const SimRowMatrixX9d& blocks, double shift, bool project) {
+bool SimMembrane::factorize(const SimRef3& x, double volume_scale, const SimRef9& blocks,
+                            double shift, bool project) {
   assemble(x, volume_scale, blocks, shift, project);
   return factorize_assembled();
 }
 
-void SimMembrane::assemble(const SimRowMatrixX3d& x, double volume_scale,
-                           const SimRowMatrixX9d& blocks, double shift, bool project) {
+void SimMembrane::assemble(const SimRef3& x, double volume_scale, const SimRef9& blocks,
+                           double shift, bool project) {
   require(x.rows() == n_nodes_, "positions must be N x 3 with N the rest node count");
   require(blocks.rows() == n_nodes_ || blocks.rows() == 0, "blocks must be N x 9 or empty");
   double* val = H_.valuePtr();
@@ -261,7 +261,7 @@ bool SimMembrane::factorize_assembled() {
   return factorized_;
 }
 
-SimRowMatrixX3d SimMembrane::multiply(const SimRowMatrixX3d& v) const {
+SimRowMatrixX3d SimMembrane::multiply(const SimRef3& v) const {
   require(assembled_, "nothing assembled yet");
   require(v.rows() == n_nodes_, "v must be N x 3");
   Eigen::VectorXd r(n_free_);
@@ -284,7 +284,7 @@ int SimMembrane::nonpositive_pivots() const {
   return static_cast<int>((ldlt_.vectorD().array() <= 0.0).count());
 }
 
-SimRowMatrixX3d SimMembrane::solve(const SimRowMatrixX3d& rhs) const {
+SimRowMatrixX3d SimMembrane::solve(const SimRef3& rhs) const {
   require(factorized_, "solve called without a successful factorisation");
   require(rhs.rows() == n_nodes_, "rhs must be N x 3");
   Eigen::VectorXd r(n_free_);

@@ -12,6 +12,9 @@ namespace bubble {
 using SimRowMatrixX3d = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
 using SimRowMatrixX3i = Eigen::Matrix<int, Eigen::Dynamic, 3, Eigen::RowMajor>;
 using SimRowMatrixX9d = Eigen::Matrix<double, Eigen::Dynamic, 9, Eigen::RowMajor>;
+// Read-only views: numpy arrays (C-contiguous float64) bind to these without a copy.
+using SimRef3 = Eigen::Ref<const SimRowMatrixX3d>;
+using SimRef9 = Eigen::Ref<const SimRowMatrixX9d>;
 
 // Strain energy per unit rest area W = mu_t / 2 (|a|^2 + |b|^2 + 1 / |a x b|^2 - 3), with
 // (a, b) the deformed images of an orthonormal rest frame of each triangle. Nodes listed in
@@ -27,28 +30,28 @@ class SimMembrane {
   long nnz() const { return static_cast<long>(H_.nonZeros()); }
 
   // Elastic energy (J); +inf if a triangle collapses. Gradient (N) into `grad` when non-null.
-  double energy(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) const;
+  double energy(const SimRef3& x, SimRowMatrixX3d* grad) const;
   // Enclosed volume (m^3) between the surface and the plane through the origin the rim lies
   // in; gradient (m^2) into `grad` when non-null.
-  double volume(const SimRowMatrixX3d& x, SimRowMatrixX3d* grad) const;
+  double volume(const SimRef3& x, SimRowMatrixX3d* grad) const;
   // Assemble H = elastic + volume_scale * d2V/dx2 + per-node 3x3 blocks (row-major, N x 9)
   // + shift * I on the free dofs, and factorise it. With `project` each element's elastic
   // Hessian is clamped to positive semi-definite. False if the factorisation fails.
-  bool factorize(const SimRowMatrixX3d& x, double volume_scale, const SimRowMatrixX9d& blocks,
-                 double shift, bool project);
+  bool factorize(const SimRef3& x, double volume_scale, const SimRef9& blocks, double shift,
+                 bool project);
   // The assembly step of `factorize` alone (H is kept for `multiply`).
-  void assemble(const SimRowMatrixX3d& x, double volume_scale, const SimRowMatrixX9d& blocks,
-                double shift, bool project);
+  void assemble(const SimRef3& x, double volume_scale, const SimRef9& blocks, double shift,
+                bool project);
   // Factorise the last assembled H (the symbolic analysis is done once). False on failure.
   bool factorize_assembled();
   // H v with the last assembled H (rows of fixed nodes zero).
-  SimRowMatrixX3d multiply(const SimRowMatrixX3d& v) const;
+  SimRowMatrixX3d multiply(const SimRef3& v) const;
   // Nonzeros of the last factor L.
   long factor_nnz() const;
   // Non-positive pivots of the last LDL^T factorisation (0: H positive definite).
   int nonpositive_pivots() const;
   // Solve H y = rhs with the last factorisation; rows of fixed nodes are returned as zero.
-  SimRowMatrixX3d solve(const SimRowMatrixX3d& rhs) const;
+  SimRowMatrixX3d solve(const SimRef3& rhs) const;
 
  private:
   int n_nodes_ = 0;

@@ -10,6 +10,8 @@
 
 namespace py = pybind11;
 using bubble::SimMembrane;
+using bubble::SimRef3;
+using bubble::SimRef9;
 using bubble::SimRowMatrixX3d;
 using bubble::SimRowMatrixX3i;
 using bubble::SimRowMatrixX9d;
@@ -24,14 +26,14 @@ void bind_sim(py::module_& m) {
       .def_property_readonly("nnz", &SimMembrane::nnz)
       .def(
           "energy",
-          [](const SimMembrane& s, const SimRowMatrixX3d& x) {
+          [](const SimMembrane& s, const SimRef3& x) {
             py::gil_scoped_release nogil;
             return s.energy(x, nullptr);
           },
           py::arg("x"))
       .def(
           "energy_grad",
-          [](const SimMembrane& s, const SimRowMatrixX3d& x) {
+          [](const SimMembrane& s, const SimRef3& x) {
             SimRowMatrixX3d g;
             double e;
             {
@@ -43,7 +45,7 @@ void bind_sim(py::module_& m) {
           py::arg("x"))
       .def(
           "volume_grad",
-          [](const SimMembrane& s, const SimRowMatrixX3d& x) {
+          [](const SimMembrane& s, const SimRef3& x) {
             SimRowMatrixX3d g;
             double v;
             {
@@ -55,8 +57,8 @@ void bind_sim(py::module_& m) {
           py::arg("x"))
       .def(
           "factorize",
-          [](SimMembrane& s, const SimRowMatrixX3d& x, double volume_scale,
-             const SimRowMatrixX9d& blocks, double shift, bool project) {
+          [](SimMembrane& s, const SimRef3& x, double volume_scale, const SimRef9& blocks,
+             double shift, bool project) {
             py::gil_scoped_release nogil;
             return s.factorize(x, volume_scale, blocks, shift, project);
           },
@@ -64,8 +66,8 @@ void bind_sim(py::module_& m) {
           py::arg("project"))
       .def(
           "assemble",
-          [](SimMembrane& s, const SimRowMatrixX3d& x, double volume_scale,
-             const SimRowMatrixX9d& blocks, double shift, bool project) {
+          [](SimMembrane& s, const SimRef3& x, double volume_scale, const SimRef9& blocks,
+             double shift, bool project) {
             py::gil_scoped_release nogil;
             s.assemble(x, volume_scale, blocks, shift, project);
           },
@@ -78,7 +80,7 @@ void bind_sim(py::module_& m) {
            })
       .def(
           "multiply",
-          [](const SimMembrane& s, const SimRowMatrixX3d& v) {
+          [](const SimMembrane& s, const SimRef3& v) {
             py::gil_scoped_release nogil;
             return s.multiply(v);
           },
@@ -87,7 +89,7 @@ void bind_sim(py::module_& m) {
       .def("nonpositive_pivots", &SimMembrane::nonpositive_pivots)
       .def(
           "solve",
-          [](const SimMembrane& s, const SimRowMatrixX3d& rhs) {
+          [](const SimMembrane& s, const SimRef3& rhs) {
             py::gil_scoped_release nogil;
             return s.solve(rhs);
           },
