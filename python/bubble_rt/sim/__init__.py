@@ -1,0 +1,1 @@
+"""Scene simulator (placeholder until the simphys branch lands its package file)."""
