@@ -79,3 +79,25 @@ class FakePhysics:
 
     def distance(self, indenter: FakeSphere, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         return indenter.distance(points, pose)
+
+
+def small_scene(effects: str = "[]", frames: int = 6, nodes: int = 300, seed: int = 0) -> Any:
+    """A short pressing scene (TOML text parsed) for fast tests."""
+    from bubble_rt.sim.scene import parse_scene
+
+    text = f"""
+name = "small"
+seed = {seed}
+frames = {frames}
+effects = {effects}
+
+[sensor]
+sim_nodes = {nodes}
+
+[trajectory]
+keyframes = [
+  {{ t = 0.0, at = [0.0, 0.0], depth = -0.002 }},
+  {{ t = {(frames - 1) / 30.0}, at = [0.005, 0.0], depth = 0.006 }},
+]
+"""
+    return parse_scene(text)

@@ -46,7 +46,7 @@ class DefaultPhysics:
     """Adapter to bubble_rt.sim.physics and bubble_rt.sim.indenters."""
 
     def rest_mesh(self, sim_nodes: int) -> Mesh:
-        from bubble_rt.sim import physics
+        from bubble_rt.sim import physics  # type: ignore[attr-defined]
 
         maker = getattr(physics, "rest_mesh", None)
         if maker is not None:
@@ -57,7 +57,7 @@ class DefaultPhysics:
         return m.with_vertices(v)
 
     def create(self, scene: Scene, rest_mesh: Mesh) -> Any:
-        from bubble_rt.sim import physics
+        from bubble_rt.sim import physics  # type: ignore[attr-defined]
 
         ph = scene.physics
         material = physics.MembraneMaterial(E=ph.youngs_modulus_pa, thickness=ph.thickness_m)
@@ -75,7 +75,7 @@ class DefaultPhysics:
         return physics.MembraneSim(rest_mesh, material, gas, contact)
 
     def indenter(self, spec: IndenterSpec) -> Any:
-        from bubble_rt.sim import indenters
+        from bubble_rt.sim import indenters  # type: ignore[attr-defined]
 
         if spec.preset is not None:
             return indenters.indenter(spec.preset)

@@ -61,7 +61,7 @@ def _make_image(st: TextureSettings) -> NDArray[np.uint8]:
     # Low-frequency blotches in the background give flow something to hold on between dots.
     coarse = rng.uniform(-1, 1, (h // 40 + 2, w // 40 + 2, 3)).astype(np.float32)
     blotch = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
-    img = np.empty((h, w, 3), np.float32)
+    img: NDArray = np.empty((h, w, 3), np.float32)
     img[:] = (205.0, 190.0, 170.0)
     img += 22.0 * blotch
     n = int(4 * hx * hy / st.dot_spacing**2)
