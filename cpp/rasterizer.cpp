@@ -13,21 +13,27 @@ inline double edge(double ax, double ay, double bx, double by, double px, double
   return (bx - ax) * (py - ay) - (by - ay) * (px - ax);
 }
 
-// Bilinear sample of channel c at texel coordinates (s, t), clamped to the border.
-inline double sample(const TextureView& tex, double s, double t, int c) {
-  s = std::clamp(s, 0.0, static_cast<double>(tex.width - 1));
-  t = std::clamp(t, 0.0, static_cast<double>(tex.height - 1));
-  const int s0 = std::min(static_cast<int>(s), tex.width - 2 < 0 ? 0 : tex.width - 2);
-  const int t0 = std::min(static_cast<int>(t), tex.height - 2 < 0 ? 0 : tex.height - 2);
-  const int s1 = std::min(s0 + 1, tex.width - 1);
-  const int t1 = std::min(t0 + 1, tex.height - 1);
+// Bilinear sample of all channels at texel coordinates (s, t), clamped to the border; writes
+// 3 values (a grey texture is replicated).
+inline void sample_rgb(const TextureView& tex, double s, double t, double out[3]) {
+  const double smax = tex.width - 1, tmax = tex.height - 1;
+  s = s < 0 ? 0 : (s > smax ? smax : s);
+  t = t < 0 ? 0 : (t > tmax ? tmax : t);
+  int s0 = static_cast<int>(s), t0 = static_cast<int>(t);
+  if (s0 > tex.width - 2) s0 = tex.width > 1 ? tex.width - 2 : 0;
+  if (t0 > tex.height - 2) t0 = tex.height > 1 ? tex.height - 2 : 0;
+  const int s1 = tex.width > 1 ? s0 + 1 : s0, t1 = tex.height > 1 ? t0 + 1 : t0;
   const double fs = s - s0, ft = t - t0;
+  const double w00 = (1 - ft) * (1 - fs), w01 = (1 - ft) * fs, w10 = ft * (1 - fs), w11 = ft * fs;
   const int C = tex.channels;
-  auto at = [&](int tt, int ss) {
-    return static_cast<double>(tex.data[(static_cast<size_t>(tt) * tex.width + ss) * C + c]);
-  };
-  return (1 - ft) * ((1 - fs) * at(t0, s0) + fs * at(t0, s1)) +
-         ft * ((1 - fs) * at(t1, s0) + fs * at(t1, s1));
+  const uint8_t* p00 = tex.data + (static_cast<size_t>(t0) * tex.width + s0) * C;
+  const uint8_t* p01 = tex.data + (static_cast<size_t>(t0) * tex.width + s1) * C;
+  const uint8_t* p10 = tex.data + (static_cast<size_t>(t1) * tex.width + s0) * C;
+  const uint8_t* p11 = tex.data + (static_cast<size_t>(t1) * tex.width + s1) * C;
+  for (int c = 0; c < 3; ++c) {
+    const int k = C == 3 ? c : 0;
+    out[c] = w00 * p00[k] + w01 * p01[k] + w10 * p10[k] + w11 * p11[k];
+  }
 }
 
 }  // namespace
@@ -138,16 +144,22 @@ RenderOutput rasterize(const Eigen::Ref<const RowMatrixX3d>& vertices,
       const double tt = l0 * texcoords(a, 1) + l1 * texcoords(b, 1) + l2 * texcoords(c, 1);
       double shade = 1.0;
       if (options.shading) {
-        const Eigen::RowVector3d n =
-            l0 * normals.row(a) + l1 * normals.row(b) + l2 * normals.row(c);
-        const Eigen::RowVector3d ray((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0);
-        const double nn = n.norm();
-        const double cosine = nn > 0 ? std::abs(n.dot(ray)) / (nn * ray.norm()) : 1.0;
+        double n[3], nn = 0;
+        for (int k = 0; k < 3; ++k) {
+          n[k] = l0 * normals(a, k) + l1 * normals(b, k) + l2 * normals(c, k);
+          nn += n[k] * n[k];
+        }
+        const double rx = (u - cam.cx) / cam.fx, ry = (v - cam.cy) / cam.fy;
+        const double rr = rx * rx + ry * ry + 1.0;
+        const double dot = n[0] * rx + n[1] * ry + n[2];
+        const double cosine = nn > 0 ? std::abs(dot) / std::sqrt(nn * rr) : 1.0;
         shade = options.ambient + (1.0 - options.ambient) * cosine;
       }
+      double rgb[3];
+      sample_rgb(texture, s, tt, rgb);
       for (int ch = 0; ch < 3; ++ch) {
-        const double val = sample(texture, s, tt, texture.channels == 3 ? ch : 0) * shade;
-        out.rgb[3 * p + ch] = static_cast<uint8_t>(std::clamp(std::lround(val), 0L, 255L));
+        const double val = rgb[ch] * shade + 0.5;
+        out.rgb[3 * p + ch] = static_cast<uint8_t>(val < 0 ? 0 : (val > 255 ? 255 : val));
       }
     }
   }

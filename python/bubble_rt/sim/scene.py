@@ -80,14 +80,16 @@ class RatesSpec:
 
 @dataclass(frozen=True)
 class PhysicsSpec:
-    """Membrane, gas and contact settings (SI units). ``friction`` (the Coulomb coefficient) and
-    the gas compressibility only take effect when the effects "friction" / "gas_compression"
-    are named."""
+    """Membrane, gas and contact settings (SI units): operating gauge pressure and ambient
+    pressure (Pa), chamber volume behind the membrane (m^3), Young's modulus (Pa), membrane
+    thickness (m), contact penalty (N/m^2; None: the physics default). Friction (the Coulomb
+    coefficient, effect parameter ``mu``) and gas compressibility only take effect when the
+    effects "friction" / "gas_compression" are named."""
 
     gauge_pressure_pa: float = 5000.0
     atmospheric_pa: float = 101325.0
-    chamber_volume_m3: float = 2.0e-4
-    youngs_modulus_pa: float = 1.317e6
+    chamber_volume_m3: float = 1.0e-3
+    youngs_modulus_pa: float = 1.3e6
     thickness_m: float = 0.65e-3
     penalty: float | None = None
 

@@ -43,18 +43,12 @@ class PhysicsBackend(Protocol):
 
 
 class DefaultPhysics:
-    """Adapter to bubble_rt.sim.physics and bubble_rt.sim.indenters."""
+    """Adapter to bubble_rt.sim.physics and bubble_rt.sim.indenters (the simphys engineer's)."""
 
     def rest_mesh(self, sim_nodes: int) -> Mesh:
         from bubble_rt.sim import physics  # type: ignore[attr-defined]
 
-        maker = getattr(physics, "rest_mesh", None)
-        if maker is not None:
-            return maker(sim_nodes)  # type: ignore[no-any-return]
-        m = Mesh.generate(sim_nodes)
-        v = m.vertices.copy()
-        v[:, 2] = 0.0
-        return m.with_vertices(v)
+        return physics.default_rest_mesh(sim_nodes)  # type: ignore[no-any-return]
 
     def create(self, scene: Scene, rest_mesh: Mesh) -> Any:
         from bubble_rt.sim import physics  # type: ignore[attr-defined]
@@ -78,23 +72,24 @@ class DefaultPhysics:
         from bubble_rt.sim import indenters  # type: ignore[attr-defined]
 
         if spec.preset is not None:
-            return indenters.indenter(spec.preset)
+            return indenters.preset(spec.preset)
         parts = []
         for s in spec.shapes:
+            c = np.asarray(s.center)
             if s.type == "sphere":
-                parts.append(indenters.Sphere(radius=s.radius, center=s.center))
+                parts.append(indenters.Sphere(s.radius, tuple(c)))
             elif s.type == "capsule":
-                parts.append(
-                    indenters.Capsule(
-                        radius=s.radius, length=s.length, center=s.center, axis=s.axis
-                    )
-                )
+                ax = np.asarray(s.axis) / np.linalg.norm(s.axis)
+                a, b = c - ax * s.length / 2, c + ax * s.length / 2
+                parts.append(indenters.Capsule(tuple(a), tuple(b), s.radius))
             else:
-                parts.append(indenters.Box(size=s.size, center=s.center))
-        return parts[0] if len(parts) == 1 else indenters.Union(parts)
+                half = tuple(0.5 * np.asarray(s.size))
+                parts.append(indenters.Box(half, tuple(c)))
+        return parts[0] if len(parts) == 1 else indenters.Union(tuple(parts))
 
     def distance(self, indenter: Any, points: NDArray, pose: NDArray) -> NDArray:
-        return np.asarray(indenter.distance(points, pose))
+        d = indenter.distance(points, pose)
+        return np.asarray(d[0] if isinstance(d, tuple) else d)
 
 
 @dataclass
