@@ -105,3 +105,30 @@ def render_depth(
         False,
     )
     return np.asarray(depth)
+
+
+def bench(repeats: int = 50, sim_nodes: int = 2000) -> dict[str, float]:
+    """Render time (ms, median and min over ``repeats``) of the default dome mesh at the D405's
+    640 x 480: depth only, and depth + textured RGB."""
+    import time
+
+    from bubble_rt.mesh import Mesh
+
+    mesh = Mesh.generate(sim_nodes)
+    ren = MembraneRenderer(Camera.d405(), mesh.triangles, mesh.vertices)
+    out: dict[str, float] = {}
+    for rgb in (False, True):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            ren.render(mesh.vertices, rgb=rgb)
+            times.append((time.perf_counter() - t0) * 1e3)
+        key = "rgbd" if rgb else "depth"
+        out[f"{key}_median_ms"] = float(np.median(times))
+        out[f"{key}_min_ms"] = float(np.min(times))
+    return out
+
+
+if __name__ == "__main__":  # python3 -m bubble_rt.sim.render
+    for k, v in bench().items():
+        print(f"{k}: {v:.1f}")
