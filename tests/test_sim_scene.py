@@ -162,6 +162,8 @@ def test_dataset_trajectories_go_free_near_contact_with_fixed_orientation():
 
 def test_dataset_has_light_and_heavy_touches():
     st = DatasetSettings(per_indenter=4, seed=3)
-    depths = np.array([s.trajectory.keyframes[2].depth for s in dataset_scenes(st)])
-    assert (depths <= st.light_depth[1]).sum() == 10
-    assert (depths >= st.heavy_depth[0]).sum() == 10
+    table = dict(st.depths)
+    scenes = dataset_scenes(st)
+    light = [s.trajectory.keyframes[2].depth <= table[s.indenter.preset][0][1] for s in scenes]
+    heavy = [s.trajectory.keyframes[2].depth >= table[s.indenter.preset][1][0] for s in scenes]
+    assert sum(light) == 10 and sum(heavy) == 10

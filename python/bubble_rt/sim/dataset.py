@@ -39,7 +39,10 @@ class DatasetSettings:
         max_tilt_deg: approach direction within this angle of the inward normal.
         free_gap: (min, max) gap of the free-space waypoint; lateral offset up to free_offset.
         near_gap: (min, max) gap of the near waypoint.
-        light_depth / heavy_depth: (min, max) final depth past first touch.
+        depths: per indenter, ((min, max) light, (min, max) heavy) final depth past first
+            touch (m). Defaults from a straight-press sweep of the physics at the dome top
+            (1,200 nodes; see the README): about 1 N and 10 N+ (the point pin reaches ~6 N at
+            22 mm, the deepest press the 30 mm dome allows).
         heavy_fraction: share of heavy touches (alternating, so both are always present).
         effects: effects every trajectory scene names.
         sim_nodes: physics mesh resolution.
@@ -49,13 +52,18 @@ class DatasetSettings:
     frames: int = 100
     indenters: tuple[str, ...] = INDENTER_PRESETS
     seed: int = 0
-    footprint_fraction: float = 0.5
+    footprint_fraction: float = 0.4
     max_tilt_deg: float = 15.0
     free_gap: tuple[float, float] = (0.010, 0.020)
     free_offset: float = 0.008
     near_gap: tuple[float, float] = (0.001, 0.003)
-    light_depth: tuple[float, float] = (0.0015, 0.003)
-    heavy_depth: tuple[float, float] = (0.010, 0.016)
+    depths: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = (
+        ("round", ((0.0025, 0.004), (0.020, 0.024))),
+        ("point", ((0.003, 0.005), (0.018, 0.022))),
+        ("line", ((0.0018, 0.003), (0.014, 0.018))),
+        ("square", ((0.0015, 0.003), (0.015, 0.019))),
+        ("split", ((0.0018, 0.003), (0.016, 0.020))),
+    )
     heavy_fraction: float = 0.5
     effects: tuple[str, ...] = (
         "friction",
@@ -102,7 +110,8 @@ def trajectory_scene(
     off = rng.normal(size=2)
     off = off / max(float(np.linalg.norm(off)), 1e-12) * rng.uniform(0, st.free_offset)
     heavy = (k % 2 == 1) if st.heavy_fraction == 0.5 else bool(rng.random() < st.heavy_fraction)
-    depth = float(rng.uniform(*(st.heavy_depth if heavy else st.light_depth)))
+    light, deep = dict(st.depths)[indenter]
+    depth = float(rng.uniform(*(deep if heavy else light)))
     free_gap = float(rng.uniform(*st.free_gap))
     near_gap = float(rng.uniform(*st.near_gap))
     duration = (st.frames - 1) / st.rates.camera_hz
