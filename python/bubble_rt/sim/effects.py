@@ -25,15 +25,32 @@ def effect_rng(seed: int, effect: str, index: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(effect.encode()), int(index)])
 
 
+def _normal_lut() -> NDArray[np.float32]:
+    from scipy.special import ndtri
+
+    return np.asarray(ndtri((np.arange(65536) + 0.5) / 65536), dtype=np.float32)
+
+
+_NORMAL_LUT = _normal_lut()
+
+
+def fast_normal(rng: np.random.Generator, shape: tuple[int, ...]) -> NDArray[np.float32]:
+    """Standard normal float32 samples via a 16-bit inverse-CDF table (tails cut at 4.3
+    sigma): about 10x faster than ``rng.standard_normal`` for whole images, so noisy frames
+    keep up with 30 Hz."""
+    n = int(np.prod(shape))
+    u = np.frombuffer(rng.bytes(2 * n), dtype=np.uint16)
+    return _NORMAL_LUT[u].reshape(shape)
+
+
 # ---------------------------------------------------------------------- image stages
 def depth_noise(
     depth: NDArray[np.float32], p: dict[str, float], rng: np.random.Generator, t: float
 ) -> NDArray[np.float32]:
     """Gaussian noise with sigma = sigma_per_m2 * z^2 (m), as in stereo and ToF sensors."""
-    z = depth.astype(np.float64)
-    valid = z > 0
-    noisy = z + rng.standard_normal(z.shape) * (p["sigma_per_m2"] * z * z)
-    return np.where(valid & (noisy > 0), noisy, 0.0).astype(np.float32)
+    z = np.asarray(depth, dtype=np.float32)
+    noisy = z + fast_normal(rng, z.shape) * (np.float32(p["sigma_per_m2"]) * z * z)
+    return np.where((z > 0) & (noisy > 0), noisy, np.float32(0.0)).astype(np.float32)
 
 
 def depth_dropouts(
@@ -54,7 +71,8 @@ def depth_dropouts(
         rng.standard_normal((gh, gw)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC
     )
     if p["fraction"] > 0:
-        thresh = np.quantile(field[valid], 1.0 - min(p["fraction"], 1.0))
+        # The threshold from a fixed subsample of the valid pixels: same statistics, 4x cheaper.
+        thresh = np.quantile(field[valid][::4], 1.0 - min(p["fraction"], 1.0))
         out[valid & (field >= thresh)] = 0.0
     n_out = int(round(p["outlier_fraction"] * valid.sum()))
     if n_out > 0:
@@ -67,8 +85,10 @@ def rgb_noise(
     rgb: NDArray[np.uint8], p: dict[str, float], rng: np.random.Generator, t: float
 ) -> NDArray[np.uint8]:
     """Additive Gaussian noise (sigma in 8-bit levels), clipped."""
-    x = rgb.astype(np.float32) + rng.standard_normal(rgb.shape, dtype=np.float32) * p["sigma"]
-    return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+    import cv2
+
+    noise = fast_normal(rng, rgb.shape) * np.float32(p["sigma"])
+    return np.asarray(cv2.add(rgb, noise, dtype=cv2.CV_8U))  # rounds and saturates
 
 
 def exposure_drift(
@@ -76,8 +96,10 @@ def exposure_drift(
 ) -> NDArray[np.uint8]:
     """A slow gain drift: gain = 1 + amplitude * sin(2 pi t / period_s + phase). The phase is
     fixed per scene (the stream of index 0), so the drift is smooth across frames."""
+    import cv2
+
     gain = 1.0 + p["amplitude"] * np.sin(2 * np.pi * t / max(p["period_s"], 1e-9) + _phase(rng))
-    return np.clip(np.rint(rgb.astype(np.float32) * gain), 0, 255).astype(np.uint8)
+    return np.asarray(cv2.convertScaleAbs(rgb, alpha=max(gain, 0.0)))
 
 
 def _phase(rng: np.random.Generator) -> float:
