@@ -52,17 +52,17 @@ class DatasetSettings:
     frames: int = 100
     indenters: tuple[str, ...] = INDENTER_PRESETS
     seed: int = 0
-    footprint_fraction: float = 0.4
+    footprint_fraction: float = 0.35
     max_tilt_deg: float = 15.0
     free_gap: tuple[float, float] = (0.010, 0.020)
     free_offset: float = 0.008
     near_gap: tuple[float, float] = (0.001, 0.003)
     depths: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = (
-        ("round", ((0.0025, 0.004), (0.020, 0.024))),
-        ("point", ((0.003, 0.005), (0.018, 0.022))),
-        ("line", ((0.0018, 0.003), (0.014, 0.018))),
-        ("square", ((0.0015, 0.003), (0.015, 0.019))),
-        ("split", ((0.0018, 0.003), (0.016, 0.020))),
+        ("round", ((0.0025, 0.004), (0.022, 0.026))),
+        ("point", ((0.003, 0.005), (0.020, 0.024))),
+        ("line", ((0.0018, 0.003), (0.016, 0.020))),
+        ("square", ((0.0015, 0.003), (0.017, 0.021))),
+        ("split", ((0.0018, 0.003), (0.018, 0.022))),
     )
     heavy_fraction: float = 0.5
     effects: tuple[str, ...] = (
