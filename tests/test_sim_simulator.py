@@ -98,6 +98,14 @@ def test_simulate_cli_writes_the_documented_layout(tmp_path, monkeypatch):
     assert z["truth_node_forces"].shape[1] == z["sim_reference_vertices"].shape[0]
     assert len(z["pressure_stream_t"]) > len(z["t"])
     assert '"seed": 3' in str(z["scene_json"])
+    from bubble_rt.commands.simulate import load_recording
+
+    cam, frames, reference = load_recording(out)
+    assert cam.width == 640 and len(frames) == 5 and len(reference) == 5
+    assert np.array_equal(frames[-1].rgb, z["rgb"][-1])
+    assert np.array_equal(frames[-1].truth.net_force, z["truth_net_force"][-1])
+    g = frames[-1].truth
+    np.testing.assert_allclose(g.displace(g.sim_reference_vertices), g.sim_vertices, atol=1e-12)
 
 
 def test_simulate_cli_reports_scene_errors(tmp_path, capsys):

@@ -123,3 +123,73 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         print(f"warning: {bad} frame(s) did not converge (truth_converged)", file=sys.stderr)
     return 0
+
+
+def load_recording(path: str | Path) -> tuple[Any, list[Any], list[Any]]:
+    """Read a recording written by ``write_recording``: (camera, frames, reference frames).
+
+    Frames carry a ``GroundTruth`` rebuilt from the stored arrays (``displace`` and
+    ``contact_mask`` work as in the simulator)."""
+    import numpy as np
+
+    from bubble_rt.camera import Camera
+    from bubble_rt.frames import Frame
+    from bubble_rt.sim.truth import GroundTruth, SurfaceLocator
+
+    with np.load(Path(path), allow_pickle=False) as z:
+        a = {k: z[k] for k in z.files}
+    if str(a.get("format")) != FORMAT:
+        raise ValueError(f"{path}: not a {FORMAT} recording")
+    K = a["camera_K"]
+    w, h = (int(x) for x in a["camera_size"])
+    cam = Camera(
+        fx=float(K[0, 0]),
+        fy=float(K[1, 1]),
+        cx=float(K[0, 2]),
+        cy=float(K[1, 2]),
+        width=w,
+        height=h,
+        distortion=tuple(float(x) for x in a["camera_distortion"]),  # type: ignore[arg-type]
+        pose=tuple(tuple(float(x) for x in r) for r in a["camera_pose"]),
+    )
+    ref_v, tris = a["sim_reference_vertices"], a["sim_triangles"]
+    loc = SurfaceLocator(ref_v, tris)
+    frames = []
+    for i in range(len(a["index"])):
+        truth = GroundTruth(
+            indenter_pose=a["truth_indenter_pose"][i],
+            net_force=a["truth_net_force"][i],
+            node_forces=a["truth_node_forces"][i],
+            pressure_pa=float(a["truth_pressure_pa"][i]),
+            sim_vertices=a["truth_vertices"][i],
+            sim_reference_vertices=ref_v,
+            sim_triangles=tris,
+            contact=a["truth_contact"][i],
+            converged=bool(a["truth_converged"][i]),
+            locator=loc,
+        )
+        frames.append(
+            Frame(
+                rgb=a["rgb"][i] if "rgb" in a else None,
+                depth=a["depth"][i] if "depth" in a else None,
+                pressure_pa=float(a["pressure_pa"][i]),
+                t=float(a["t"][i]),
+                t_pressure=float(a["t_pressure"][i]),
+                truth=truth,
+                index=int(a["index"][i]),
+                meta={"source": str(path)},
+            )
+        )
+    reference = []
+    for k in range(len(a["reference_pressure_pa"])):
+        reference.append(
+            Frame(
+                rgb=a["reference_rgb"][k] if "reference_rgb" in a else None,
+                depth=a["reference_depth"][k] if "reference_depth" in a else None,
+                pressure_pa=float(a["reference_pressure_pa"][k]),
+                t=float(a["reference_t"][k]),
+                index=k - len(a["reference_pressure_pa"]),
+                meta={"source": str(path), "reference": True},
+            )
+        )
+    return cam, frames, reference
