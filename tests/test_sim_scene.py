@@ -167,3 +167,24 @@ def test_dataset_has_light_and_heavy_touches():
     light = [s.trajectory.keyframes[2].depth <= table[s.indenter.preset][0][1] for s in scenes]
     heavy = [s.trajectory.keyframes[2].depth >= table[s.indenter.preset][1][0] for s in scenes]
     assert sum(light) == 10 and sum(heavy) == 10
+
+
+def test_user_shapes_become_physics_indenters():
+    from bubble_rt.sim.simulator import DefaultPhysics
+
+    s = parse_scene(
+        """
+[indenter]
+shapes = [ { type = "sphere", radius = 0.01, center = [0, 0, 0.01] },
+           { type = "capsule", radius = 0.002, length = 0.02, center = [0, 0, 0.03], axis = [0, 0, 1] },
+           { type = "box", size = [0.04, 0.01, 0.01], center = [0, 0, 0.05] } ]
+"""
+        + BASE
+    )
+    phys = DefaultPhysics()
+    ind = phys.indenter(s.indenter)
+    pts = np.array([[0.0, 0.0, -0.005], [0.0, 0.0, 0.0], [0.019, 0.0, 0.05], [0.0, 0.0, 0.1]])
+    d = phys.distance(ind, pts, np.eye(4))
+    np.testing.assert_allclose(d[:3], [0.005, 0.0, -0.001], atol=1e-9)
+    assert d[3] > 0.04
+    assert phys.distance(phys.indenter(load_scene("demo").indenter), pts[:1], np.eye(4))[0] > 0

@@ -115,3 +115,46 @@ def test_simulate_cli_reports_scene_errors(tmp_path, capsys):
     bad.write_text("seed = 1\n")
     assert main(["simulate", str(bad), "-o", str(tmp_path / "x.npz")]) == 2
     assert "trajectory: missing" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- real physics
+def test_demo_scene_runs_end_to_end_with_the_real_physics():
+    from bubble_rt.sim.scene import SensorSpec, load_scene
+
+    scene = load_scene("demo").with_changes(frames=22, sensor=SensorSpec(sim_nodes=500))
+    sim = Simulator(scene)
+    frames = list(sim.frames())
+    assert len(frames) == 22
+    assert all(f.truth.converged for f in frames)
+    first, pressed = frames[0], frames[-1]  # 0.7 s: pressed ~6.5 mm at the dome top
+    assert not first.truth.contact.any() and np.allclose(first.truth.net_force, 0)
+    f = pressed.truth.net_force
+    assert f[2] < -1.0 and abs(f[2]) > 5 * np.hypot(f[0], f[1])  # down, along the axis
+    assert pressed.truth.pressure_pa > first.truth.pressure_pa  # the air is sealed
+    # The dome top comes towards the camera where it is pressed.
+    c = np.s_[230:250, 300:320]
+    d0, d1 = first.depth[c], pressed.depth[c]
+    assert np.median(d1[d1 > 0]) < np.median(d0[d0 > 0]) - 0.003
+    ref = sim.reference_frames(2)
+    assert ref[0].truth.pressure_pa == pytest.approx(101325.0 + 5000.0, rel=1e-6)
+
+
+def test_real_physics_same_scene_same_output():
+    scene = small_scene('["friction", "gas_compression", "rgb_noise"]', frames=4, nodes=300)
+    a = list(Simulator(scene, use_cache=False).frames())
+    b = list(Simulator(scene, use_cache=False).frames())
+    assert a[-1].truth.contact.any()
+    for x, y in zip(a, b, strict=True):
+        assert np.array_equal(x.truth.sim_vertices, y.truth.sim_vertices)
+        assert np.array_equal(x.rgb, y.rgb) and x.pressure_pa == y.pressure_pa
+
+
+def test_dataset_has_light_and_heavy_touches_in_the_physics():
+    from bubble_rt.sim.dataset import DatasetSettings, dataset_scenes
+
+    st = DatasetSettings(per_indenter=2, frames=20, indenters=("round",), sim_nodes=600, seed=0)
+    light, heavy = dataset_scenes(st)
+    f_light = np.linalg.norm(list(Simulator(light).frames())[-1].truth.net_force)
+    f_heavy = np.linalg.norm(list(Simulator(heavy).frames())[-1].truth.net_force)
+    assert 0.4 < f_light < 2.5
+    assert f_heavy >= 10.0

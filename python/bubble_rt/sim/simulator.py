@@ -46,12 +46,12 @@ class DefaultPhysics:
     """Adapter to bubble_rt.sim.physics and bubble_rt.sim.indenters (the simphys engineer's)."""
 
     def rest_mesh(self, sim_nodes: int) -> Mesh:
-        from bubble_rt.sim import physics  # type: ignore[attr-defined]
+        import bubble_rt.sim.physics as physics
 
-        return physics.default_rest_mesh(sim_nodes)  # type: ignore[no-any-return]
+        return physics.default_rest_mesh(sim_nodes)
 
     def create(self, scene: Scene, rest_mesh: Mesh) -> Any:
-        from bubble_rt.sim import physics  # type: ignore[attr-defined]
+        import bubble_rt.sim.physics as physics
 
         ph = scene.physics
         material = physics.MembraneMaterial(E=ph.youngs_modulus_pa, thickness=ph.thickness_m)
@@ -69,11 +69,11 @@ class DefaultPhysics:
         return physics.MembraneSim(rest_mesh, material, gas, contact)
 
     def indenter(self, spec: IndenterSpec) -> Any:
-        from bubble_rt.sim import indenters  # type: ignore[attr-defined]
+        import bubble_rt.sim.indenters as indenters
 
         if spec.preset is not None:
             return indenters.preset(spec.preset)
-        parts = []
+        parts: list[Any] = []
         for s in spec.shapes:
             c = np.asarray(s.center)
             if s.type == "sphere":
