@@ -24,6 +24,9 @@ def test_builtin_scenes_load():
     assert demo.frames == 120
     assert demo.has("friction") and demo.params("friction")["mu"] == 0.5
     assert demo.sensor.camera == "d405" and demo.rates.pressure_hz == 100.0
+    oracle = load_scene("oracle")
+    assert oracle.has("oracle") and oracle.physics_key("0") == demo.physics_key("0")
+    assert load_scene("clean").effects == ()
 
 
 def test_frames_default_to_trajectory_length():
