@@ -1,0 +1,500 @@
+"""Scenes: what to simulate, read from TOML.
+
+A scene names the sensor, the physics settings, the indenter, its trajectory, the effects to
+simulate (nothing else is computed), the seed and the number of frames. Built-in scenes ship in
+``bubble_rt/scenes/*.toml`` and are loaded by name (``load_scene("demo")``); any other argument
+is read as a file path. Errors raise ``SceneError`` naming the offending key (e.g.
+``trajectory.keyframes[2].depth``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+#: Every effect a scene may name, with its parameters and their defaults.
+EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
+    # Physics effects (change the simulated state).
+    "friction": {"mu": 0.5},
+    "gas_compression": {},
+    # Camera effects.
+    "depth_noise": {"sigma_per_m2": 0.02},
+    "depth_dropouts": {
+        "fraction": 0.10,
+        "blob_px": 14.0,
+        "outlier_fraction": 2.0e-4,
+        "outlier_depth": 6.5535,
+    },
+    "rgb_noise": {"sigma": 2.0},
+    "exposure_drift": {"amplitude": 0.08, "period_s": 6.0},
+    # Pressure sensor effects.
+    "pressure_noise": {"sigma_pa": 5.0},
+    "pressure_quantization": {"step_pa": 1.0},
+    # Timing effects.
+    "timestamp_jitter": {"sigma_s": 0.002},
+    "dropped_frames": {"probability": 0.03},
+    # Oracle correspondences: no image rendered, the frame's truth carries exact displacements.
+    "oracle": {},
+}
+
+INDENTER_PRESETS = ("round", "point", "line", "square", "split")
+SHAPE_KEYS: dict[str, tuple[str, ...]] = {
+    "sphere": ("radius",),
+    "capsule": ("radius", "length"),
+    "box": ("size",),
+}
+
+
+class SceneError(ValueError):
+    """A scene is malformed; the message names the key at fault."""
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """camera: camera preset name; camera_pose: optional 4 x 4 camera-to-mesh transform;
+    sim_nodes: node count of the physics mesh; texture_seed: the printed dot pattern."""
+
+    camera: str = "d405"
+    camera_pose: tuple[tuple[float, ...], ...] | None = None
+    sim_nodes: int = 2000
+    texture_seed: int = 0
+
+
+@dataclass(frozen=True)
+class RatesSpec:
+    """camera_hz: camera frame rate; pressure_hz: pressure sensor reading rate (Hz)."""
+
+    camera_hz: float = 30.0
+    pressure_hz: float = 100.0
+
+
+@dataclass(frozen=True)
+class PhysicsSpec:
+    """Membrane, gas and contact settings (SI units): operating gauge pressure and ambient
+    pressure (Pa), chamber volume behind the membrane (m^3), Young's modulus (Pa), membrane
+    thickness (m), contact penalty (N/m^2; None: the physics default). Friction (the Coulomb
+    coefficient, effect parameter ``mu``) and gas compressibility only take effect when the
+    effects "friction" / "gas_compression" are named."""
+
+    gauge_pressure_pa: float = 5000.0
+    atmospheric_pa: float = 101325.0
+    chamber_volume_m3: float = 1.0e-3
+    youngs_modulus_pa: float = 1.3e6
+    thickness_m: float = 0.65e-3
+    penalty: float | None = None
+
+
+@dataclass(frozen=True)
+class ShapeSpec:
+    """One primitive of a user indenter, in the indenter frame (m)."""
+
+    type: str
+    radius: float = 0.0
+    length: float = 0.0
+    size: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class IndenterSpec:
+    """Either a preset name or a union of shapes (indenter frame: it presses along its -z)."""
+
+    preset: str | None = "round"
+    shapes: tuple[ShapeSpec, ...] = ()
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """An indenter pose at time t (s).
+
+    Surface form: ``at`` (x, y) picks the reference-surface point above that footprint point;
+    the indenter approaches along ``approach`` (unit, mesh frame; default: the inward surface
+    normal there), spun by ``spin_deg`` about it, and ``depth`` (m) is how far it is pushed past
+    first touch (negative: a gap). Pose form: ``position`` (m) and ``rotvec`` (rad).
+    """
+
+    t: float
+    at: tuple[float, float] | None = None
+    depth: float = 0.0
+    approach: tuple[float, float, float] | None = None
+    spin_deg: float = 0.0
+    position: tuple[float, float, float] | None = None
+    rotvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    keyframes: tuple[Keyframe, ...]
+    loop: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene. ``effects`` maps each named effect to its full parameter set."""
+
+    name: str
+    trajectory: TrajectorySpec
+    frames: int
+    seed: int = 0
+    sensor: SensorSpec = field(default_factory=SensorSpec)
+    rates: RatesSpec = field(default_factory=RatesSpec)
+    physics: PhysicsSpec = field(default_factory=PhysicsSpec)
+    indenter: IndenterSpec = field(default_factory=IndenterSpec)
+    effects: tuple[tuple[str, tuple[tuple[str, float], ...]], ...] = ()
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def effect_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.effects)
+
+    def has(self, effect: str) -> bool:
+        return effect in self.effect_names
+
+    def params(self, effect: str) -> dict[str, float]:
+        for name, p in self.effects:
+            if name == effect:
+                return dict(p)
+        raise KeyError(effect)
+
+    def with_changes(self, **changes: Any) -> Scene:
+        from dataclasses import replace
+
+        return replace(self, **changes)
+
+    def physics_key(self, version: str) -> str:
+        """Hash of everything the physics depends on, plus the package version."""
+        payload = {
+            "version": version,
+            "sim_nodes": self.sensor.sim_nodes,
+            "physics": asdict(self.physics),
+            "indenter": asdict(self.indenter),
+            "trajectory": asdict(self.trajectory),
+            "frames": self.frames,
+            "camera_hz": self.rates.camera_hz,
+            "friction": self.params("friction") if self.has("friction") else None,
+            "gas": self.has("gas_compression"),
+        }
+        blob = json.dumps(payload, sort_keys=True, default=str).encode()
+        return hashlib.sha256(blob).hexdigest()[:32]
+
+
+# ---------------------------------------------------------------------- loading
+def builtin_scenes() -> list[str]:
+    """Names of the scenes shipped with the package."""
+    root = resources.files("bubble_rt") / "scenes"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scene(name_or_path: str | Path) -> Scene:
+    """A built-in scene by name ("demo") or a TOML file by path."""
+    s = str(name_or_path)
+    if not s.endswith(".toml") and s in builtin_scenes():
+        text = (resources.files("bubble_rt") / "scenes" / f"{s}.toml").read_text()
+        return parse_scene(text, default_name=s)
+    path = Path(s)
+    if not path.exists():
+        raise SceneError(
+            f"scene {s!r} is neither a built-in ({', '.join(builtin_scenes())}) nor a file"
+        )
+    return parse_scene(path.read_text(), default_name=path.stem)
+
+
+def parse_scene(text: str, default_name: str = "scene") -> Scene:
+    """Parse and validate a scene's TOML text."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"scene is not valid TOML: {exc}") from exc
+    return scene_from_dict(data, default_name)
+
+
+def _num(d: dict, key: str, path: str, default: Any = None, positive: bool = False) -> Any:
+    if key not in d:
+        if default is None:
+            raise SceneError(f"{path}{key}: missing (required)")
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise SceneError(f"{path}{key}: expected a number, got {v!r}")
+    if positive and not v > 0:
+        raise SceneError(f"{path}{key}: must be positive, got {v!r}")
+    return float(v)
+
+
+def _int(d: dict, key: str, path: str, default: int | None = None, minimum: int = 0) -> int:
+    if key not in d:
+        if default is None:
+            raise SceneError(f"{path}{key}: missing (required)")
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise SceneError(f"{path}{key}: expected an integer, got {v!r}")
+    if v < minimum:
+        raise SceneError(f"{path}{key}: must be at least {minimum}, got {v}")
+    return int(v)
+
+
+def _vec(d: dict, key: str, path: str, n: int, default: Any = None) -> Any:
+    if key not in d:
+        if default is None and n > 0:
+            raise SceneError(f"{path}{key}: missing (required)")
+        return default
+    v = d[key]
+    if (
+        not isinstance(v, list)
+        or len(v) != n
+        or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)
+    ):
+        raise SceneError(f"{path}{key}: expected a list of {n} numbers, got {v!r}")
+    return tuple(float(x) for x in v)
+
+
+def _table(data: dict, key: str) -> dict:
+    v = data.get(key, {})
+    if not isinstance(v, dict):
+        raise SceneError(f"{key}: expected a table, got {v!r}")
+    return v
+
+
+def _no_unknown(d: dict, allowed: tuple[str, ...], path: str) -> None:
+    for k in d:
+        if k not in allowed:
+            raise SceneError(f"{path}{k}: unknown key; allowed: {', '.join(allowed)}")
+
+
+def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
+    """Validate a parsed scene (the TOML as a dict)."""
+    _no_unknown(
+        data,
+        (
+            "name",
+            "seed",
+            "frames",
+            "sensor",
+            "rates",
+            "physics",
+            "indenter",
+            "trajectory",
+            "effects",
+        ),
+        "",
+    )
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name:
+        raise SceneError(f"name: expected a non-empty string, got {name!r}")
+    seed = _int(data, "seed", "", 0)
+
+    sd = _table(data, "sensor")
+    _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture_seed"), "sensor.")
+    camera = sd.get("camera", "d405")
+    from bubble_rt.camera import Camera
+
+    try:
+        Camera.preset(camera)
+    except (ValueError, TypeError) as exc:
+        raise SceneError(f"sensor.camera: {exc}") from exc
+    pose = sd.get("camera_pose")
+    if pose is not None:
+        if not (isinstance(pose, list) and len(pose) == 4 and all(len(r) == 4 for r in pose)):
+            raise SceneError("sensor.camera_pose: expected a 4 x 4 list of numbers")
+        try:
+            Camera.preset(camera, pose=tuple(tuple(float(x) for x in r) for r in pose))
+        except (ValueError, TypeError) as exc:
+            raise SceneError(f"sensor.camera_pose: {exc}") from exc
+        pose = tuple(tuple(float(x) for x in r) for r in pose)
+    sensor = SensorSpec(
+        camera=camera,
+        camera_pose=pose,
+        sim_nodes=_int(sd, "sim_nodes", "sensor.", 2000, minimum=50),
+        texture_seed=_int(sd, "texture_seed", "sensor.", 0),
+    )
+
+    rd = _table(data, "rates")
+    _no_unknown(rd, ("camera_hz", "pressure_hz"), "rates.")
+    rates = RatesSpec(
+        camera_hz=_num(rd, "camera_hz", "rates.", 30.0, positive=True),
+        pressure_hz=_num(rd, "pressure_hz", "rates.", 100.0, positive=True),
+    )
+
+    pd = _table(data, "physics")
+    pkeys = tuple(PhysicsSpec.__dataclass_fields__)
+    _no_unknown(pd, pkeys, "physics.")
+    dflt = PhysicsSpec()
+    physics = PhysicsSpec(
+        gauge_pressure_pa=_num(pd, "gauge_pressure_pa", "physics.", dflt.gauge_pressure_pa, True),
+        atmospheric_pa=_num(pd, "atmospheric_pa", "physics.", dflt.atmospheric_pa, True),
+        chamber_volume_m3=_num(pd, "chamber_volume_m3", "physics.", dflt.chamber_volume_m3, True),
+        youngs_modulus_pa=_num(pd, "youngs_modulus_pa", "physics.", dflt.youngs_modulus_pa, True),
+        thickness_m=_num(pd, "thickness_m", "physics.", dflt.thickness_m, True),
+        penalty=_num(pd, "penalty", "physics.", positive=True) if "penalty" in pd else None,
+    )
+
+    indenter = _parse_indenter(_table(data, "indenter"))
+    trajectory = _parse_trajectory(data.get("trajectory"))
+    rate = rates.camera_hz
+    t_end = trajectory.keyframes[-1].t
+    frames = _int(data, "frames", "", int(round(t_end * rate)) + 1, minimum=1)
+    effects = _parse_effects(data.get("effects", []))
+    if "oracle" in dict(effects) and any(
+        n in dict(effects) for n in ("depth_noise", "depth_dropouts", "rgb_noise", "exposure_drift")
+    ):
+        raise SceneError(
+            "effects: 'oracle' renders no image, so it cannot be combined with image effects"
+        )
+    return Scene(
+        name=name,
+        trajectory=trajectory,
+        frames=frames,
+        seed=seed,
+        sensor=sensor,
+        rates=rates,
+        physics=physics,
+        indenter=indenter,
+        effects=effects,
+    )
+
+
+def _parse_indenter(d: dict) -> IndenterSpec:
+    _no_unknown(d, ("preset", "shapes"), "indenter.")
+    if "preset" in d and "shapes" in d:
+        raise SceneError("indenter: give either 'preset' or 'shapes', not both")
+    if "shapes" not in d:
+        preset = d.get("preset", "round")
+        if preset not in INDENTER_PRESETS:
+            raise SceneError(
+                f"indenter.preset: unknown preset {preset!r}; choose one of "
+                f"{', '.join(INDENTER_PRESETS)}"
+            )
+        return IndenterSpec(preset=preset)
+    shapes = d["shapes"]
+    if not isinstance(shapes, list) or not shapes:
+        raise SceneError("indenter.shapes: expected a non-empty list of tables")
+    out = []
+    for i, s in enumerate(shapes):
+        path = f"indenter.shapes[{i}]."
+        if not isinstance(s, dict):
+            raise SceneError(f"indenter.shapes[{i}]: expected a table")
+        kind = s.get("type")
+        if kind not in SHAPE_KEYS:
+            raise SceneError(f"{path}type: expected one of {', '.join(SHAPE_KEYS)}, got {kind!r}")
+        _no_unknown(s, ("type", "center", "axis") + SHAPE_KEYS[kind], path)
+        kw: dict[str, Any] = {"type": kind}
+        kw["center"] = _vec(s, "center", path, 3, (0.0, 0.0, 0.0))
+        if kind == "sphere":
+            kw["radius"] = _num(s, "radius", path, positive=True)
+        elif kind == "capsule":
+            kw["radius"] = _num(s, "radius", path, positive=True)
+            kw["length"] = _num(s, "length", path, positive=True)
+            kw["axis"] = _vec(s, "axis", path, 3, (1.0, 0.0, 0.0))
+        else:
+            size = _vec(s, "size", path, 3)
+            if min(size) <= 0:
+                raise SceneError(f"{path}size: every side must be positive, got {list(size)}")
+            kw["size"] = size
+        out.append(ShapeSpec(**kw))
+    return IndenterSpec(preset=None, shapes=tuple(out))
+
+
+def _parse_trajectory(d: Any) -> TrajectorySpec:
+    if d is None:
+        raise SceneError("trajectory: missing (required table with 'keyframes')")
+    if not isinstance(d, dict):
+        raise SceneError("trajectory: expected a table")
+    _no_unknown(d, ("keyframes", "loop"), "trajectory.")
+    loop = d.get("loop", False)
+    if not isinstance(loop, bool):
+        raise SceneError(f"trajectory.loop: expected true or false, got {loop!r}")
+    kfs = d.get("keyframes")
+    if not isinstance(kfs, list) or not kfs:
+        raise SceneError("trajectory.keyframes: expected a non-empty list of tables")
+    out: list[Keyframe] = []
+    allowed = ("t", "at", "depth", "approach", "spin_deg", "position", "rotvec")
+    for i, k in enumerate(kfs):
+        path = f"trajectory.keyframes[{i}]."
+        if not isinstance(k, dict):
+            raise SceneError(f"trajectory.keyframes[{i}]: expected a table")
+        _no_unknown(k, allowed, path)
+        t = _num(k, "t", path)
+        if out and t <= out[-1].t:
+            raise SceneError(f"{path}t: times must increase, got {t} after {out[-1].t}")
+        if t < 0:
+            raise SceneError(f"{path}t: must be >= 0, got {t}")
+        if ("at" in k) == ("position" in k):
+            raise SceneError(f"{path}at: give exactly one of 'at' (surface form) or 'position'")
+        if "at" in k:
+            approach = _vec(k, "approach", path, 3, None) if "approach" in k else None
+            if approach is not None and sum(x * x for x in approach) < 1e-12:
+                raise SceneError(f"{path}approach: must be a non-zero direction")
+            out.append(
+                Keyframe(
+                    t=t,
+                    at=_vec(k, "at", path, 2),
+                    depth=_num(k, "depth", path, 0.0),
+                    approach=approach,
+                    spin_deg=_num(k, "spin_deg", path, 0.0),
+                )
+            )
+        else:
+            if any(x in k for x in ("depth", "approach", "spin_deg")):
+                raise SceneError(f"{path}depth: 'depth/approach/spin_deg' need the 'at' form")
+            out.append(
+                Keyframe(
+                    t=t,
+                    position=_vec(k, "position", path, 3),
+                    rotvec=_vec(k, "rotvec", path, 3, (0.0, 0.0, 0.0)),
+                )
+            )
+    forms = {kf.at is None for kf in out}
+    if len(forms) > 1:
+        raise SceneError("trajectory.keyframes: do not mix the 'at' and 'position' forms")
+    return TrajectorySpec(keyframes=tuple(out), loop=loop)
+
+
+def _parse_effects(e: Any) -> tuple[tuple[str, tuple[tuple[str, float], ...]], ...]:
+    if isinstance(e, list):
+        items: list[tuple[str, dict]] = []
+        for i, name in enumerate(e):
+            if not isinstance(name, str):
+                raise SceneError(f"effects[{i}]: expected an effect name, got {name!r}")
+            items.append((name, {}))
+    elif isinstance(e, dict):
+        items = []
+        for name, p in e.items():
+            if isinstance(p, bool) and p:
+                p = {}
+            if not isinstance(p, dict):
+                raise SceneError(f"effects.{name}: expected a table of parameters (or true)")
+            items.append((name, p))
+    else:
+        raise SceneError("effects: expected a list of names or a table of name -> parameters")
+    out = []
+    seen = set()
+    for name, p in items:
+        if name not in EFFECT_DEFAULTS:
+            raise SceneError(
+                f"effects.{name}: unknown effect; choose from {', '.join(EFFECT_DEFAULTS)}"
+            )
+        if name in seen:
+            raise SceneError(f"effects.{name}: named twice")
+        seen.add(name)
+        params = dict(EFFECT_DEFAULTS[name])
+        for k, v in p.items():
+            if k not in params:
+                allowed = ", ".join(params) or "none"
+                raise SceneError(f"effects.{name}.{k}: unknown parameter; allowed: {allowed}")
+            if isinstance(v, bool) or not isinstance(v, int | float) or v < 0:
+                raise SceneError(f"effects.{name}.{k}: expected a non-negative number, got {v!r}")
+            params[k] = float(v)
+        out.append((name, tuple(sorted(params.items()))))
+    return tuple(out)

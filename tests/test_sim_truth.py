@@ -1,0 +1,97 @@
+"""Ground truth: displacement map and contact transfer to estimator meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+from bubble_rt.mesh import Mesh
+from bubble_rt.sim.truth import GroundTruth, SurfaceLocator, closest_points_on_triangles
+
+
+def truth_for(sim: Mesh, current: np.ndarray, contact: np.ndarray) -> GroundTruth:
+    n = len(sim.vertices)
+    return GroundTruth(
+        indenter_pose=np.eye(4),
+        net_force=np.zeros(3),
+        node_forces=np.zeros((n, 3)),
+        pressure_pa=106325.0,
+        sim_vertices=current,
+        sim_reference_vertices=sim.vertices,
+        sim_triangles=sim.triangles,
+        contact=contact,
+    )
+
+
+def test_displace_is_identity_at_reference():
+    sim = Mesh.generate(1200)
+    gt = truth_for(sim, sim.vertices, np.zeros(sim.n_nodes, bool))
+    est = Mesh.preset("medium")  # its own dome: nodes a little off the sim surface
+    np.testing.assert_allclose(gt.displace(est.vertices), est.vertices, atol=1e-15)
+    np.testing.assert_allclose(gt.displace(sim.vertices), sim.vertices, atol=1e-15)
+
+
+def test_displace_reproduces_an_affine_motion_of_surface_points():
+    sim = Mesh.generate(800)
+    A = np.array([[1.01, 0.02, 0.0], [-0.01, 0.99, 0.03], [0.0, 0.01, 0.97]])
+    b = np.array([0.001, -0.002, 0.0005])
+    gt = truth_for(sim, sim.vertices @ A.T + b, np.zeros(sim.n_nodes, bool))
+    rng = np.random.default_rng(1)
+    tri = rng.integers(0, sim.n_triangles, 300)
+    lam = rng.dirichlet(np.ones(3), 300)
+    pts = np.einsum("ij,ijk->ik", lam, sim.vertices[sim.triangles[tri]])
+    np.testing.assert_allclose(gt.displace(pts), pts @ A.T + b, atol=1e-12)
+
+
+def test_closest_points_match_brute_force():
+    rng = np.random.default_rng(2)
+    a, b, c = (rng.normal(size=(500, 3)) for _ in range(3))
+    p = rng.normal(size=(500, 3)) * 2
+    lam = closest_points_on_triangles(p, a, b, c)
+    q = lam[:, :1] * a + lam[:, 1:2] * b + lam[:, 2:] * c
+    assert (lam >= -1e-12).all() and np.allclose(lam.sum(axis=1), 1)
+    d_best = np.linalg.norm(q - p, axis=1)
+    g = np.linspace(0, 1, 61)
+    U, W = np.meshgrid(g, g)
+    keep = (U + W) <= 1
+    L = np.column_stack([1 - U[keep] - W[keep], U[keep], W[keep]])
+    for i in range(0, 500, 50):
+        samples = L @ np.stack([a[i], b[i], c[i]])
+        assert d_best[i] <= np.linalg.norm(samples - p[i], axis=1).min() + 1e-12
+
+
+def test_locator_finds_the_triangle_under_a_point():
+    sim = Mesh.generate(600)
+    loc = SurfaceLocator(sim.vertices, sim.triangles)
+    tri, lam = loc.locate(sim.vertices[sim.triangles[37]].mean(axis=0, keepdims=True))
+    assert tri[0] == 37
+    np.testing.assert_allclose(lam[0], [1 / 3] * 3, atol=1e-9)
+
+
+def test_contact_mask_transfers_a_known_contact_disc():
+    sim = Mesh.generate(2500)
+    R = 0.015
+    r_sim = np.hypot(sim.vertices[:, 0], sim.vertices[:, 1])
+    gt = truth_for(sim, sim.vertices, r_sim < R)
+    est = Mesh.preset("medium")
+    mask = gt.contact_mask(est)
+    r_est = np.hypot(est.vertices[:, 0], est.vertices[:, 1])
+    h = est.edge_lengths().max()  # a node's region reaches at most about an edge away
+    assert mask[r_est < R - h].all()
+    assert not mask[r_est > R + h].any()
+    # The masked lumped area is the disc's area (on the dome) within a ring of one edge.
+    from bubble_rt.sim.truth import _lattice_samples
+
+    assert len(_lattice_samples()) % 3 == 0
+    n_inside = mask.sum()
+    assert np.sum(r_est < R - h) <= n_inside <= np.sum(r_est < R + h)
+
+
+def test_contact_mask_of_no_contact_is_empty():
+    sim = Mesh.generate(500)
+    gt = truth_for(sim, sim.vertices, np.zeros(sim.n_nodes, bool))
+    assert not gt.contact_mask(Mesh.preset("coarse")).any()
+
+
+def test_contact_mask_of_full_contact_covers_every_node():
+    sim = Mesh.generate(500)
+    gt = truth_for(sim, sim.vertices, np.ones(sim.n_nodes, bool))
+    assert gt.contact_mask(Mesh.preset("coarse")).all()
