@@ -571,6 +571,11 @@ class Daemon:
             return pb.Status.STARTING, reason
         if cam_reason:
             return pb.Status.DEGRADED, cam_reason
+        if self.frames_published == 0:
+            reason = "reference captured, waiting for the first force frame"
+            if self.last_error:
+                reason += f"; {self.last_error}"
+            return pb.Status.STARTING, reason
         if self._tare_requested:
             return pb.Status.DEGRADED, "taring: capturing a new reference"
         t_deg, reasons = self._last_degraded

@@ -52,12 +52,12 @@ TOPIC_STATUS = "/bubble_rt/status"
 FRAME_ID = "bubble_rt_camera"
 
 _TYPES: dict[str, Any] = {
-    "foxglove.RawImage": Any,
-    "bubble_rt.v1.CameraInfo": Any,
-    "bubble_rt.v1.Mesh": Any,
-    "bubble_rt.v1.PressureSample": Any,
-    "bubble_rt.v1.ForceFrame": Any,
-    "bubble_rt.v1.Status": Any,
+    "foxglove.RawImage": fox.RawImage,
+    "bubble_rt.v1.CameraInfo": pb.CameraInfo,
+    "bubble_rt.v1.Mesh": pb.Mesh,
+    "bubble_rt.v1.PressureSample": pb.PressureSample,
+    "bubble_rt.v1.ForceFrame": pb.ForceFrame,
+    "bubble_rt.v1.Status": pb.Status,
 }
 
 
