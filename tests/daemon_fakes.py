@@ -8,7 +8,6 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
 from bubble_rt.frames import Frame
@@ -48,8 +47,9 @@ def make_frame(i: int, push: float = 0.0) -> Frame:
     """A tiny synthetic frame; ``push`` (N) is what the fake processor reports as net force."""
     rgb = np.full((H, W, 3), i % 255, np.uint8)
     depth = np.full((H, W), 0.07, np.float32)
-    return Frame(rgb=rgb, depth=depth, pressure_pa=P0 + 10.0 * push, t=i / 30.0, index=i,
-                 meta={"push": push})
+    return Frame(
+        rgb=rgb, depth=depth, pressure_pa=P0 + 10.0 * push, t=i / 30.0, index=i, meta={"push": push}
+    )
 
 
 class ScriptedCamera(IterableCamera):
@@ -59,8 +59,12 @@ class ScriptedCamera(IterableCamera):
         self.pause = threading.Event()
         self.fail_next = threading.Event()
         self.sessions = 0
-        super().__init__(self._gen, Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2),
-                         rate_hz=rate_hz, lossless=lossless)
+        super().__init__(
+            self._gen,
+            Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2),
+            rate_hz=rate_hz,
+            lossless=lossless,
+        )
         self.retry_s = 0.05
         self.name = self.stats.name = "scripted"
 
@@ -84,7 +88,9 @@ class FakeProcessor:
 
     def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
         self.mesh = coarse_mesh()
-        self.reference = SimpleNamespace(pressure_pa=float(np.mean([f.pressure_pa for f in frames])))
+        self.reference = SimpleNamespace(
+            pressure_pa=float(np.mean([f.pressure_pa for f in frames]))
+        )
         self.params: dict[str, float] = {}
         self.references = 1
         self.nodes = np.flatnonzero(self.mesh.interior)[:5]
@@ -107,8 +113,13 @@ class FakeProcessor:
             normal_pressure=np.where(contact, 5000.0, 0.0),
             contact=contact,
             net_force=f.sum(axis=0),
-            info=SimpleNamespace(status="solved", iterations=3, primal_residual=1e-6,
-                                 dual_residual=1e-6, objective=1.0),
+            info=SimpleNamespace(
+                status="solved",
+                iterations=3,
+                primal_residual=1e-6,
+                dual_residual=1e-6,
+                objective=1.0,
+            ),
             timings_ms={"solve": 0.1, "post": 0.01},
             valid_node_fraction=1.0,
         )
@@ -122,3 +133,30 @@ class FakeProcessor:
 
 def constant_pressure() -> tuple[ConstantPressure, None]:
     return ConstantPressure(P0), None
+
+
+def main() -> None:
+    """Run a daemon on the fakes like `bubble-rt serve` does (signal handling included)."""
+    import argparse
+
+    from bubble_rt.commands.serve import install_signal_handlers, serve_until
+    from bubble_rt.daemon import Daemon
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--pub", required=True)
+    ap.add_argument("--control", required=True)
+    ap.add_argument("--record", default="")
+    a = ap.parse_args()
+    cfg = fake_config(
+        **{"network.pub": a.pub, "network.control": a.control, "recording.path": a.record}
+    )
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    d = Daemon(
+        cfg, camera=ScriptedCamera(), pressure=constant_pressure(), processor_factory=FakeProcessor
+    ).start()
+    serve_until(d, stop)
+
+
+if __name__ == "__main__":
+    main()

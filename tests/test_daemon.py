@@ -9,12 +9,11 @@ import time
 import numpy as np
 import pytest
 import zmq
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
-
 from bubble_rt import protocol
 from bubble_rt.client import ControlError, Controller, Subscriber
 from bubble_rt.daemon import Daemon, DaemonError, PatchFinder, lumped_areas, validate_params
 from bubble_rt.mesh import Mesh
+from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -85,7 +84,7 @@ def test_set_params_applied_between_frames(daemon):
     with Controller(d.control_address) as c:
         out = c.set_params(k_f=0.5, youngs_modulus=1.0e6)
         assert out["k_f"] == 0.5 and out["youngs_modulus"] == 1.0e6
-        assert 'k_f = 0.5' in c.get_config()
+        assert "k_f = 0.5" in c.get_config()
     proc = FakeProcessor.instances[-1]
     assert wait_for(lambda: proc.params.get("k_f") == 0.5)
     assert proc.params["youngs_modulus"] == 1.0e6
@@ -256,7 +255,9 @@ def test_port_in_use_is_a_clear_error(daemon):
     cfg = fake_config(**{"network.pub": d.pub_address})
     with pytest.raises(DaemonError, match="cannot bind network.pub"):
         Daemon(
-            cfg, camera=ScriptedCamera(), pressure=constant_pressure(),
+            cfg,
+            camera=ScriptedCamera(),
+            pressure=constant_pressure(),
             processor_factory=FakeProcessor,
         ).start()
 

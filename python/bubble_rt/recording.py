@@ -154,8 +154,8 @@ class Recorder:
             "zstd": CompressionType.ZSTD,
             "none": CompressionType.NONE,
         }[compression]
-        # Unbuffered: a chunk handed to the OS survives a crash of this process.
-        self._file = open(self.path, "wb", buffering=0)  # noqa: SIM115
+        # Buffered; flushed to the OS every flush_s (a flushed chunk survives a crash).
+        self._file = open(self.path, "wb")  # noqa: SIM115
         self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=comp)
         self._writer.start(profile="", library="bubble_rt")
         self._channels: dict[str, int] = {}
@@ -277,6 +277,7 @@ class Recorder:
         with self._lock:
             try:
                 self._writer.finish()
+                self._file.flush()
             finally:
                 self._file.close()
 

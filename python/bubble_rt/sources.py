@@ -608,6 +608,9 @@ class SerialPressure(ThreadedSource):
                         if line.strip():
                             self.stats.error("partial", f"discarded first line {line[:32]!r}")
                         continue
+                    if len(line) > self.max_line:
+                        self.stats.error("partial", f"line longer than {self.max_line} bytes")
+                        continue
                     self._handle(line)
                 if len(pending) > self.max_line:
                     self.stats.error("partial", f"line longer than {self.max_line} bytes")
