@@ -82,7 +82,7 @@ class ScriptedCamera(IterableCamera):
 
 
 class FakeProcessor:
-    """Force = frame.meta['push'] newtons along -z on the first 5 interior nodes."""
+    """Force = (rgb[0, 0, 0] mod 5) + 1 newtons along -z on the first 5 interior nodes."""
 
     instances: list[FakeProcessor] = []
 
@@ -98,7 +98,8 @@ class FakeProcessor:
         FakeProcessor.instances.append(self)
 
     def stage1(self, frame: Frame) -> Any:
-        return float(frame.meta.get("push", 0.0))
+        # Derived from the image so that a recording replays to the same outputs.
+        return float(frame.rgb[0, 0, 0] % 5) + 1.0 if frame.rgb is not None else 0.0
 
     def stage2(self, frame: Frame, data: Any) -> Any:
         if self.delay_s:

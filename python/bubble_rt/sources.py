@@ -258,7 +258,7 @@ class CameraSource(ThreadedSource):
         meta = dict(frame.meta)
         meta.setdefault("source_t", frame.t)
         meta.setdefault("source_index", frame.index)
-        idx = self._count
+        idx = frame.index if getattr(self, "keep_index", False) else self._count
         self._count += 1
         now = time.time()
         return replace(frame, t=now, t_pressure=now, index=idx, meta=meta)
@@ -278,8 +278,11 @@ class IterableCamera(CameraSource):
         lossless: bool = False,
         by_timestamps: bool = False,
         reference: Callable[[int], list[Frame] | None] | None = None,
+        keep_index: bool = False,
     ) -> None:
         super().__init__(lossless=lossless)
+        #: Keep the frames' own indices (a single pass over a recording) instead of renumbering.
+        self.keep_index = keep_index
         self._frames = frames
         self.camera = camera
         self.rate_hz = rate_hz
@@ -368,6 +371,7 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
         lossless=not realtime,
         by_timestamps=True,
         reference=reference,
+        keep_index=not loop,
     )
     src.name = f"replay:{p.name}"
     src.stats.name = src.name
