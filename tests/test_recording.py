@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,8 @@ pytestmark = pytest.mark.timeout(90)
 def test_round_trip_frames_camera_and_reference(tmp_path):
     cam = Camera.d405(width=32, height=24, cx=16, cy=12)
     frames = [make_frame(i) for i in range(5)]
-    ref = [make_frame(100 + i) for i in range(2)]
+    # Reference frames come before the stream: the simulator gives them negative indices.
+    ref = [replace(make_frame(100 + i), index=i - 2) for i in range(2)]
     p = tmp_path / "r.mcap"
     assert write_recording(p, frames, cam, reference=ref) == 5
     rec = McapRecording(p)
@@ -43,7 +45,7 @@ def test_round_trip_frames_camera_and_reference(tmp_path):
         np.testing.assert_array_equal(a.depth, b.depth)
         assert a.pressure_pa == b.pressure_pa and a.t == pytest.approx(b.t)
     r = rec.reference_frames(10)
-    assert len(r) == 2 and r[0].rgb[0, 0, 0] == 100
+    assert len(r) == 2 and r[0].rgb[0, 0, 0] == 100 and [f.index for f in r] == [-2, -1]
 
 
 def test_images_use_foxglove_raw_image_schema(tmp_path):
