@@ -212,11 +212,9 @@ class ReferenceSection:
     """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
 
     frames: int = 10
-    #: Give up starting when no reference is captured within this time.
-    timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
-        _positive(self, "frames", "timeout_s")
+        _positive(self, "frames")
 
 
 @dataclass(frozen=True)
