@@ -454,3 +454,50 @@ def test_camera_factory_realsense():
     cfg = DaemonConfig().with_overrides(**{"camera.source": "realsense:42"})
     cam = make_camera_source(cfg.camera)
     assert isinstance(cam, RealSenseCamera) and cam.serial == "42"
+
+
+class FakeSimulator:
+    """The bubble_rt.sim.Simulator interface the sim source uses."""
+
+    renders = 0
+
+    def __init__(self, scene):
+        self.scene = types.SimpleNamespace(frames=4, rates=types.SimpleNamespace(camera_hz=30.0))
+        self.camera = Camera.d405()
+
+    def frames(self):
+        for i in range(4):
+            FakeSimulator.renders += 1
+            yield make_frame(i)
+
+    def reference_frames(self, n):
+        return [make_frame(-n + k) for k in range(n)]
+
+
+def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
+    from bubble_rt.sources import SimCamera
+
+    monkeypatch.setitem(
+        sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=FakeSimulator)
+    )
+    FakeSimulator.renders = 0
+    cam = SimCamera("demo", lossless=True)
+    assert [f.index for f in cam.reference_frames(2)] == [-2, -1]
+    cam.start()
+    try:
+        got = [cam.output.get(5.0) for _ in range(10)]
+    finally:
+        cam.stop()
+    assert [f.index for f in got] == list(range(10))
+    assert FakeSimulator.renders == 4  # later passes replay the first one
+
+
+def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
+    from bubble_rt.sources import SimCamera
+
+    def boom(scene):
+        raise ValueError("no scene named 'nope'")
+
+    monkeypatch.setitem(sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=boom))
+    with pytest.raises(SourceError, match="cannot load simulator scene 'nope'"):
+        SimCamera("nope")

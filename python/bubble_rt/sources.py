@@ -314,25 +314,58 @@ class IterableCamera(CameraSource):
 
 
 def SimCamera(
-    scene: str = "demo", rate_hz: float = 30.0, loop: bool = True, lossless: bool = False
+    scene: str = "demo",
+    rate_hz: float | None = None,
+    loop: bool = True,
+    lossless: bool = False,
+    prerender: bool = True,
 ) -> IterableCamera:
-    """The simulator (``bubble_rt.sim``) on a scene, looped, paced at ``rate_hz``."""
+    """The simulator (``bubble_rt.sim``) on a scene, looped, paced at the scene's camera rate.
+
+    Frame indices keep counting across loops (``index = pass * scene.frames + i``), so frame
+    ``k`` shows scene frame ``k % scene.frames``. With ``prerender`` the first pass is kept in
+    memory and later passes replay it, leaving the CPU to the estimator (the noise then
+    repeats every loop).
+    """
     try:
-        from bubble_rt.sim import Simulator, load_scene
+        from bubble_rt.sim import Simulator
     except ImportError as exc:
         raise SourceError(f"the simulator is not available: {exc}") from exc
-    sim = Simulator(load_scene(scene))
+    try:
+        sim = Simulator(scene)
+    except Exception as exc:
+        raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
+    n_frames = int(sim.scene.frames)
+    cache: list[Frame] = []
+    state = {"pass": 0, "complete": False}
+
+    def frames() -> Iterator[Frame]:
+        k = state["pass"]
+        state["pass"] += 1
+        offset = k * n_frames
+        if state["complete"]:
+            for f in cache:
+                yield replace(f, index=f.index + offset)
+            return
+        cache.clear()
+        for f in sim.frames():
+            if prerender:
+                cache.append(f)
+            yield replace(f, index=f.index + offset)
+        state["complete"] = prerender
 
     def reference(n: int) -> list[Frame] | None:
         return list(sim.reference_frames(n))
 
+    hz = rate_hz or float(sim.scene.rates.camera_hz)
     src = IterableCamera(
-        sim.frames,
+        frames,
         sim.camera,
-        rate_hz=None if lossless else rate_hz,
+        rate_hz=None if lossless else hz,
         loop=loop,
         lossless=lossless,
         reference=reference,
+        keep_index=True,
     )
     src.name = f"sim:{scene}"
     src.stats.name = src.name
@@ -646,7 +679,7 @@ def make_camera_source(cfg: Any) -> CameraSource:
     kind, arg = split_source(cfg.source)
     if kind == "sim":
         return SimCamera(
-            arg or "demo", rate_hz=float(cfg.fps), loop=cfg.loop, lossless=cfg.pace == "fast"
+            arg or "demo", loop=cfg.loop, lossless=cfg.pace == "fast", prerender=cfg.sim_prerender
         )
     if kind == "replay":
         return ReplayCamera(arg, realtime=cfg.pace == "realtime", loop=cfg.loop)
