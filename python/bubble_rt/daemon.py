@@ -500,8 +500,10 @@ class Daemon:
             if vf < 0.5:
                 reasons.append(f"only {vf:.0%} of nodes tracked")
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
-            ref_p = getattr(getattr(proc, "reference", None), "pressure_pa", None)
-            dp = item.frame.pressure_pa - ref_p if ref_p is not None else 0.0
+            dp = getattr(item.data, "dp", None)
+            if dp is None:
+                ref_p = getattr(getattr(proc, "reference", None), "pressure_pa", None)
+                dp = item.frame.pressure_pa - ref_p if ref_p is not None else 0.0
             msg = protocol.encode_force_frame(
                 sensor_id=self.sensor_id,
                 seq=self.seq,
