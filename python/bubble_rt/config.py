@@ -190,6 +190,22 @@ class EstimatorSection:
 
 
 @dataclass(frozen=True)
+class SolverSection:
+    """ADMM settings for real time (SolverSettings): a time limit keeps up with the camera."""
+
+    #: Per-frame solve budget, milliseconds (0: none). The best iterate so far is published
+    #: with solver status "time_limit_reached".
+    time_limit_ms: float = 25.0
+    max_iter: int = 4000
+    eps_rel: float = 5e-4
+    warm_start: bool = True
+
+    def __post_init__(self) -> None:
+        _non_negative(self, "time_limit_ms")
+        _positive(self, "max_iter", "eps_rel")
+
+
+@dataclass(frozen=True)
 class FlowSection:
     """Optical flow settings passed to the deformation tracker (FlowSettings)."""
 
@@ -268,6 +284,7 @@ class DaemonConfig:
     pressure: PressureConfig = field(default_factory=PressureConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
+    solver: SolverSection = field(default_factory=SolverSection)
     flow: FlowSection = field(default_factory=FlowSection)
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)

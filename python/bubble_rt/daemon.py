@@ -101,8 +101,22 @@ class EstimatorProcessor:
             k_u=ec.k_u,
             k_const=ec.k_const,
             k_linear=ec.k_linear,
+            solver=self._solver_settings(),
         )
         self._build(reference)
+
+    def _solver_settings(self) -> Any:
+        from bubble_rt.solver import SolverSettings
+
+        sc = self.config.solver
+        wanted = {
+            "time_limit": sc.time_limit_ms / 1e3,
+            "max_iter": sc.max_iter,
+            "eps_rel": sc.eps_rel,
+            "warm_start": sc.warm_start,
+        }
+        names = {f.name for f in dataclasses.fields(SolverSettings)}
+        return SolverSettings(**{k: v for k, v in wanted.items() if k in names})
 
     def _flow_settings(self) -> Any:
         from bubble_rt.deformation import FlowSettings
