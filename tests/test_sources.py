@@ -426,7 +426,7 @@ def test_realsense_frames_aligned_and_scaled():
         cam.stop()
     assert f is not None and f.rgb.shape == (480, 640, 3) and f.depth.dtype == np.float32
     assert f.depth[0, 0] == pytest.approx(0.07)
-    assert np.isnan(f.pressure_pa) and f.meta["device_time_ms"] > 1000
+    assert not f.meta["has_pressure"] and f.meta["device_time_ms"] > 1000
 
 
 def test_realsense_stall_counted_then_restarted():

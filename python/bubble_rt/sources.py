@@ -249,7 +249,11 @@ class CameraSource(ThreadedSource):
         self.stats.received += 1
         self.stats.connected = True
         self.stats.last_time = frame.t
-        if self.pressure_out is not None and math.isfinite(frame.pressure_pa):
+        if (
+            self.pressure_out is not None
+            and frame.meta.get("has_pressure", True)
+            and math.isfinite(frame.pressure_pa)
+        ):
             self.pressure_out.push(frame.t, frame.pressure_pa)
         self.output.put(frame, block=self.lossless, stop=self._stop)
 
@@ -522,16 +526,23 @@ class RealSenseCamera(CameraSource):
                 z = np.asanyarray(depth.get_data()).astype(np.float32) * self._depth_scale
                 idx = self._count
                 self._count += 1
-                self.emit(
-                    Frame(
+                try:
+                    # The camera has no pressure: the daemon pairs one from the pressure source.
+                    frame = Frame(
                         rgb=rgb,
                         depth=z,
-                        pressure_pa=math.nan,
+                        pressure_pa=0.0,
                         t=t,
                         index=idx,
-                        meta={"device_time_ms": float(frames.get_timestamp())},
+                        meta={
+                            "device_time_ms": float(frames.get_timestamp()),
+                            "has_pressure": False,
+                        },
                     )
-                )
+                except ValueError as exc:  # e.g. no valid depth pixel (lens covered)
+                    self.stats.error("bad_frame", str(exc))
+                    continue
+                self.emit(frame)
         finally:
             self._close()
         return None
