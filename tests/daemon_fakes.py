@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 from types import SimpleNamespace
@@ -130,6 +131,30 @@ class FakeProcessor:
 
     def reconfigure(self, params: dict[str, float]) -> None:
         self.params.update(params)
+
+
+class FakeSensor:
+    """The microcontroller side of a pseudo-terminal, behind a symlink that can be re-pointed."""
+
+    def __init__(self, link: str) -> None:
+        self.link = link
+        self.open()
+
+    def open(self) -> None:
+        import tty
+
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        if os.path.lexists(self.link):
+            os.unlink(self.link)
+        os.symlink(os.ttyname(self.slave), self.link)
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+    def vanish(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
 
 
 def constant_pressure() -> tuple[ConstantPressure, None]:

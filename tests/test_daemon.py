@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 import time
 
 import numpy as np
@@ -350,3 +351,38 @@ def test_lumped_areas_sum_to_surface_area():
     v, t = mesh.vertices, mesh.triangles
     total = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
     np.testing.assert_allclose(lumped_areas(v, t).sum(), total.sum())
+
+
+def test_camera_and_serial_pressure_combine(tmp_path):
+    from daemon_fakes import FakeSensor
+
+    sensor = FakeSensor(str(tmp_path / "tty"))
+    cfg = fake_config(**{"pressure.source": f"serial:{sensor.link}", "pressure.reconnect_s": 0.05})
+    from bubble_rt.sources import make_pressure_source
+
+    cam = ScriptedCamera()
+    pressure = make_pressure_source(cfg.pressure, cam)
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            try:
+                sensor.write(b"1020.00 hPa\n")
+            except OSError:
+                return
+            stop.wait(0.01)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    d = Daemon(cfg, camera=cam, pressure=pressure, processor_factory=FakeProcessor).start()
+    try:
+        assert d.wait_ready(20)
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            f = next(sub.frames(count=1, timeout_s=5))
+        assert f.pressure_pa == pytest.approx(102000.0) and not f.degraded
+        st = status_of(d)
+        assert st.sources[f"serial:{sensor.link}"]["received"] > 0
+    finally:
+        stop.set()
+        d.stop()
+        sensor.vanish()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import time
@@ -26,7 +25,7 @@ from bubble_rt.sources import (
     pair_pressure,
     parse_pressure_line,
 )
-from daemon_fakes import make_frame
+from daemon_fakes import FakeSensor, make_frame
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -166,30 +165,6 @@ def test_line_out_of_range():
 
 
 # ------------------------------------------------------------------ serial on a pty
-class FakeSensor:
-    """The microcontroller side of a pseudo-terminal, behind a symlink that can be re-pointed."""
-
-    def __init__(self, link: str) -> None:
-        self.link = link
-        self.open()
-
-    def open(self) -> None:
-        import tty
-
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.slave)
-        if os.path.lexists(self.link):
-            os.unlink(self.link)
-        os.symlink(os.ttyname(self.slave), self.link)
-
-    def write(self, data: bytes) -> None:
-        os.write(self.master, data)
-
-    def vanish(self) -> None:
-        os.close(self.master)
-        os.close(self.slave)
-
-
 @pytest.fixture
 def sensor(tmp_path):
     s = FakeSensor(str(tmp_path / "ttyMPRLS"))
