@@ -125,13 +125,14 @@ class EstimatorProcessor:
         wanted = dataclasses.asdict(self.config.flow)
         return FlowSettings(**{k: v for k, v in wanted.items() if k in names})
 
-    def _build(self, reference: Any) -> None:
+    def _build(self, reference: Any, estimator: bool = True) -> None:
         from bubble_rt.estimator import make_estimator
 
         self.reference = reference
-        self.estimator = make_estimator(
-            self.kind, self.mesh, self.est_config, camera=self.camera, reference=reference
-        )
+        if estimator:
+            self.estimator = make_estimator(
+                self.kind, self.mesh, self.est_config, camera=self.camera, reference=reference
+            )
         if self.kind == "fem":
             from bubble_rt.deformation import DeformationTracker
 
@@ -153,7 +154,8 @@ class EstimatorProcessor:
     def set_reference(self, frames: list[Frame]) -> None:
         from bubble_rt.deformation import Reference
 
-        self._build(Reference.capture(frames))
+        # The FEM estimator depends on the mesh only: keep it (and its factorisation).
+        self._build(Reference.capture(frames), estimator=self.kind != "fem")
 
     def reconfigure(self, params: dict[str, float]) -> None:
         changes: dict[str, Any] = {k: v for k, v in params.items() if k != "youngs_modulus"}
