@@ -123,3 +123,27 @@ def test_format_line_marks_degraded():
     )
     line = format_line(protocol.decode_force_frame(msg), 30.0, "degraded")
     assert "|F|  2.000 N" in line and "DEGRADED: pressure stale" in line
+
+
+def test_record_command_records_for_a_duration(daemon, tmp_path):
+    import argparse
+
+    from bubble_rt.commands import record
+    from bubble_rt.recording import McapRecording
+
+    out = tmp_path / "cli.mcap"
+    args = argparse.Namespace(output=str(out), control=daemon.control_address, duration=0.5)
+    assert record.run(args) == 0
+    assert len(list(McapRecording(out).force_frames())) > 0
+
+
+def test_record_command_without_daemon_fails_cleanly(tmp_path):
+    import argparse
+
+    from bubble_rt.commands import record
+
+    args = argparse.Namespace(
+        output=str(tmp_path / "x.mcap"), control=f"tcp://127.0.0.1:{free_port()}", duration=0.1
+    )
+    # Controller timeout is 5 s in the command; an absent daemon is reported, not raised.
+    assert record.run(args) == 1

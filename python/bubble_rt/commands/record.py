@@ -6,6 +6,7 @@ import argparse
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 HELP = "record a running daemon's inputs and force frames to an MCAP file"
@@ -20,11 +21,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    stop = threading.Event()
+    previous = {
+        sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        return _record(args, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _record(args: argparse.Namespace, stop: threading.Event) -> int:
     from bubble_rt.client import ControlError, Controller
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     path = str(Path(args.output).resolve())
     with Controller(args.control, timeout_s=5.0) as ctl:
         try:
@@ -33,7 +43,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"bubble-rt record: {exc}", file=sys.stderr)
             return 1
         print(f"recording to {written} (Ctrl-C to stop)", flush=True)
-        stop.wait(args.duration if args.duration > 0 else None)
+        end = time.monotonic() + args.duration if args.duration > 0 else None
+        while not stop.wait(0.2) and (end is None or time.monotonic() < end):
+            pass
         try:
             done = ctl.record_stop()
         except (ControlError, TimeoutError) as exc:
