@@ -374,6 +374,7 @@ class Daemon:
         try:
             with self._pub_lock:
                 self._send(protocol.status_topic(self.sensor_id), self.status_message(stopped=True))
+            time.sleep(0.05)  # give the final status a moment on the wire (LINGER is 0)
         except Exception:
             pass
         self._close_sockets()
