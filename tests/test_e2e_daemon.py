@@ -17,7 +17,10 @@ pytestmark = [pytest.mark.timeout(400), pytest.mark.slow]
 
 def scene_truth() -> tuple[np.ndarray, int]:
     """Net force (F x 3, N) the indenter applies in each demo frame, and the frame count."""
-    from bubble_rt.sim import Simulator
+    try:
+        from bubble_rt.sim import Simulator
+    except ImportError:
+        from bubble_rt.sim.simulator import Simulator
 
     sim = Simulator("demo")
     run = sim.run  # cached physics (the daemon computed it first if it was missing)

@@ -333,8 +333,11 @@ def SimCamera(
     """
     try:
         from bubble_rt.sim import Simulator
-    except ImportError as exc:
-        raise SourceError(f"the simulator is not available: {exc}") from exc
+    except ImportError:
+        try:
+            from bubble_rt.sim.simulator import Simulator
+        except ImportError as exc:
+            raise SourceError(f"the simulator is not available: {exc}") from exc
     try:
         sim = Simulator(scene)
     except Exception as exc:
