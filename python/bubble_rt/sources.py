@@ -14,6 +14,7 @@ latency (capture -> publish) is meaningful to subscribers on the same host.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import threading
@@ -29,6 +30,7 @@ from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
 
 T = TypeVar("T")
+log = logging.getLogger("bubble_rt.sources")
 HPA = 100.0
 
 
@@ -338,8 +340,27 @@ def SimCamera(
             from bubble_rt.sim.simulator import Simulator
         except ImportError as exc:
             raise SourceError(f"the simulator is not available: {exc}") from exc
+    last = [-1]
+
+    def progress(done: int, total: int) -> None:
+        step = (10 * done) // max(total, 1)
+        if step != last[0]:
+            last[0] = step
+            log.info(
+                "simulating the physics of scene %r (first run only, cached): %d/%d frames",
+                scene,
+                done,
+                total,
+            )
+
+    import inspect
+
     try:
-        sim = Simulator(scene)
+        takes_progress = "progress" in inspect.signature(Simulator).parameters
+    except (TypeError, ValueError):
+        takes_progress = False
+    try:
+        sim = Simulator(scene, progress=progress) if takes_progress else Simulator(scene)
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)

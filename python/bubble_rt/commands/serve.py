@@ -54,10 +54,13 @@ def build_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 
 def run(args: argparse.Namespace) -> int:
+    import logging
+
     from bubble_rt.config import ConfigError
     from bubble_rt.daemon import Daemon, DaemonError
     from bubble_rt.sources import SourceError
 
+    logging.basicConfig(level=logging.INFO, format="bubble-rt serve: %(message)s")
     try:
         cfg = build_config(args)
     except ConfigError as exc:
