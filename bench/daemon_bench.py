@@ -58,13 +58,14 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
         ctl,
         *extra,
     ]
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    log = open(f"/tmp/daemon_bench_{mesh}_{os.getpid()}.log", "w")  # noqa: SIM115
+    proc = subprocess.Popen(cmd, env=env, stderr=log, text=True)
     lat: list[float] = []
     stages: dict[str, list[float]] = {}
     degraded = 0
     try:
         with Subscriber(pub, ctl, timeout_s=600) as sub:
-            sub.fetch_mesh(600)
+            mesh = sub.fetch_mesh(600)
             t_warm = time.monotonic() + warmup_s
             for _ in sub.frames(timeout_s=30):
                 if time.monotonic() >= t_warm:
@@ -93,10 +94,11 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
+        log.close()
     a = np.asarray(lat)
     return {
         "mesh": mesh,
-        "nodes": sub.mesh.n_nodes,
+        "nodes": mesh.n_nodes,
         "camera": camera,
         "seconds": round(elapsed, 1),
         "frames": n,

@@ -173,7 +173,8 @@ class Subscriber:
         ) as c:
             while time.monotonic() < end:
                 try:
-                    return c.get_mesh()
+                    self._mesh = c.get_mesh()
+                    return self._mesh
                 except (ControlError, TimeoutError) as exc:
                     last = str(exc)
                     time.sleep(0.1)
