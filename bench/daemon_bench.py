@@ -65,7 +65,7 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
     degraded = 0
     try:
         with Subscriber(pub, ctl, timeout_s=600) as sub:
-            mesh = sub.fetch_mesh(600)
+            mesh_data = sub.fetch_mesh(600)
             t_warm = time.monotonic() + warmup_s
             for _ in sub.frames(timeout_s=30):
                 if time.monotonic() >= t_warm:
@@ -98,7 +98,7 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
     a = np.asarray(lat)
     return {
         "mesh": mesh,
-        "nodes": mesh.n_nodes,
+        "nodes": mesh_data.n_nodes,
         "camera": camera,
         "seconds": round(elapsed, 1),
         "frames": n,
