@@ -191,25 +191,22 @@ class EstimatorSection:
 
 @dataclass(frozen=True)
 class SolverSection:
-    """ADMM settings for real time (SolverSettings): a time limit keeps up with the camera."""
+    """Real-time budget of the ADMM solver (other SolverSettings keep the core's defaults)."""
 
     #: Per-frame solve budget, milliseconds (0: none). The best iterate so far is published
     #: with solver status "time_limit_reached".
     time_limit_ms: float = 25.0
-    max_iter: int = 4000
-    eps_rel: float = 5e-4
-    warm_start: bool = True
 
     def __post_init__(self) -> None:
         _non_negative(self, "time_limit_ms")
-        _positive(self, "max_iter", "eps_rel")
 
 
 @dataclass(frozen=True)
 class FlowSection:
-    """Optical flow settings passed to the deformation tracker (FlowSettings)."""
+    """Optical flow settings passed to the deformation tracker (FlowSettings; its other
+    settings keep the deformation module's defaults)."""
 
-    method: str = "dis_fast"
+    method: str = "dis_ultrafast"
     scale: float = 1.0
     forward_backward: bool = False
 

@@ -109,12 +109,7 @@ class EstimatorProcessor:
         from bubble_rt.solver import SolverSettings
 
         sc = self.config.solver
-        wanted = {
-            "time_limit": sc.time_limit_ms / 1e3,
-            "max_iter": sc.max_iter,
-            "eps_rel": sc.eps_rel,
-            "warm_start": sc.warm_start,
-        }
+        wanted = {"time_limit": sc.time_limit_ms / 1e3}
         names = {f.name for f in dataclasses.fields(SolverSettings)}
         return SolverSettings(**{k: v for k, v in wanted.items() if k in names})
 
