@@ -240,12 +240,17 @@ class ProcessingConfig:
     pipeline: str = "two_stage"
     #: Pause between two stage-one frames waiting for a newer frame, seconds.
     poll_s: float = 0.05
+    #: Threads of OpenCV's parallel loops in the C++ core (OPENCV_FOR_THREADS_NUM; 0: OpenCV's
+    #: default). One per stage lets the flow and the solve each keep a core instead of
+    #: fighting over both. Takes effect only if the core is not loaded yet when the daemon starts.
+    opencv_threads: int = 1
 
     def __post_init__(self) -> None:
         _check(
             self.pipeline in ("two_stage", "single"), "pipeline", "must be 'two_stage' or 'single'"
         )
         _positive(self, "poll_s")
+        _check(self.opencv_threads >= 0, "opencv_threads", "must be >= 0")
 
 
 @dataclass(frozen=True)

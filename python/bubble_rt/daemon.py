@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -306,6 +307,9 @@ class Daemon:
     def start(self) -> Daemon:
         cfg = self.config
         self._started_at = time.time()
+        if cfg.processing.opencv_threads > 0:
+            # Read once when the C++ core loads (its first import happens below or later).
+            os.environ.setdefault("OPENCV_FOR_THREADS_NUM", str(cfg.processing.opencv_threads))
         if self._camera_src is None:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
