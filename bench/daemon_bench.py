@@ -1,0 +1,145 @@
+"""Daemon benchmark (not a test): sustained rate, latency percentiles and memory over time.
+
+Runs `bubble-rt serve` in a subprocess for each mesh, subscribes with the client, and reports
+the published frame rate, end-to-end latency (capture -> publish) p50 / p99, frames dropped and
+the daemon's resident memory (VmRSS) after warm-up and at the end.
+
+    OPENBLAS_NUM_THREADS=1 python3 bench/daemon_bench.py --minutes 10
+    python3 bench/daemon_bench.py --minutes 1 --meshes medium --camera sim
+
+Target (issue 5): keeps up with a 30 Hz camera at 640 x 480 on the 390-node mesh with p99
+latency under 66 ms on a 2-core machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+from bubble_rt.client import Controller, Subscriber
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: float) -> dict:
+    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    cmd = [
+        sys.executable,
+        "-m",
+        "bubble_rt",
+        "serve",
+        "--mesh",
+        mesh,
+        "--camera",
+        camera,
+        "--pub",
+        pub,
+        "--control",
+        ctl,
+        *extra,
+    ]
+    log = open(f"/tmp/daemon_bench_{mesh}_{os.getpid()}.log", "w")  # noqa: SIM115
+    proc = subprocess.Popen(cmd, env=env, stderr=log, text=True)
+    lat: list[float] = []
+    stages: dict[str, list[float]] = {}
+    degraded = 0
+    try:
+        with Subscriber(pub, ctl, timeout_s=600) as sub:
+            mesh_data = sub.fetch_mesh(600)
+            t_warm = time.monotonic() + warmup_s
+            for _ in sub.frames(timeout_s=30):
+                if time.monotonic() >= t_warm:
+                    break
+            rss_start = rss_mb(proc.pid)
+            with Controller(ctl) as c:
+                st0 = c.status()
+            t0 = time.monotonic()
+            end = t0 + minutes * 60
+            n = 0
+            for f in sub.frames(timeout_s=30):
+                n += 1
+                lat.append(f.latency_ms)
+                degraded += f.degraded
+                for k, v in f.timings_ms.items():
+                    stages.setdefault(k, []).append(v)
+                if time.monotonic() >= end:
+                    break
+            elapsed = time.monotonic() - t0
+            rss_end = rss_mb(proc.pid)
+            with Controller(ctl) as c:
+                st1 = c.status()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+    a = np.asarray(lat)
+    return {
+        "mesh": mesh,
+        "nodes": mesh_data.n_nodes,
+        "camera": camera,
+        "seconds": round(elapsed, 1),
+        "frames": n,
+        "rate_hz": round(n / elapsed, 2),
+        "dropped": st1.frames_dropped - st0.frames_dropped,
+        "degraded_frames": degraded,
+        "latency_p50_ms": round(float(np.percentile(a, 50)), 1),
+        "latency_p99_ms": round(float(np.percentile(a, 99)), 1),
+        "latency_max_ms": round(float(a.max()), 1),
+        "stage_p50_ms": {k: round(float(np.median(v)), 2) for k, v in sorted(stages.items())},
+        "rss_start_mb": round(rss_start, 1),
+        "rss_end_mb": round(rss_end, 1),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="measurement time per mesh")
+    ap.add_argument("--meshes", default="coarse,medium,fine")
+    ap.add_argument("--camera", default="sim", help="camera source (default: the demo scene)")
+    ap.add_argument("--warmup", type=float, default=10.0, help="seconds ignored at the start")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("serve_args", nargs="*", help="extra `bubble-rt serve` arguments after --")
+    args = ap.parse_args()
+    rows = []
+    for mesh in args.meshes.split(","):
+        r = run_one(mesh, args.minutes, args.camera, args.serve_args, args.warmup)
+        rows.append(r)
+        if args.json:
+            print(json.dumps(r), flush=True)
+        else:
+            print(
+                f"{r['mesh']:>7} ({r['nodes']} nodes): {r['rate_hz']:5.1f} Hz over {r['seconds']} s,"
+                f" latency p50 {r['latency_p50_ms']} ms p99 {r['latency_p99_ms']} ms"
+                f" (max {r['latency_max_ms']}), dropped {r['dropped']}, degraded"
+                f" {r['degraded_frames']}, RSS {r['rss_start_mb']} -> {r['rss_end_mb']} MB",
+                flush=True,
+            )
+            print(f"         stage medians (ms): {r['stage_p50_ms']}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,129 @@
+"""`bubble-rt serve`: run the streaming daemon (default: simulated demo scene, real time)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from typing import Any
+
+HELP = "run the force-estimation daemon and publish force frames over ZeroMQ"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration (see config dump)")
+    parser.add_argument(
+        "--camera", metavar="SOURCE", help="sim[:scene] | replay:<file> | realsense[:serial]"
+    )
+    parser.add_argument(
+        "--pressure", metavar="SOURCE", help="camera | serial:<port> | constant:<Pa>"
+    )
+    parser.add_argument("--pub", metavar="ADDR", help="PUB address (tcp://127.0.0.1:5555)")
+    parser.add_argument("--control", metavar="ADDR", help="control address (tcp://127.0.0.1:5556)")
+    parser.add_argument("--sensor-id", help="sensor id used in topics")
+    parser.add_argument("--mesh", help="mesh preset (coarse|medium|fine) or file")
+    parser.add_argument("--estimator", choices=["fem", "frictionless"], help="estimator kind")
+    parser.add_argument("--pace", choices=["realtime", "fast"], help="sim/replay pacing")
+    parser.add_argument("--record", metavar="FILE", help="record inputs and outputs from start")
+    parser.add_argument(
+        "--echo", action="store_true", help="also print received frames (in-process subscriber)"
+    )
+    parser.add_argument(
+        "--duration", type=float, default=0.0, help="stop after S seconds (0: run until signal)"
+    )
+
+
+def build_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from bubble_rt.config import DaemonConfig
+
+    cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()
+    return cfg.with_overrides(
+        **{
+            "camera.source": args.camera,
+            "pressure.source": args.pressure,
+            "network.pub": args.pub,
+            "network.control": args.control,
+            "sensor_id": args.sensor_id,
+            "estimator.mesh": args.mesh,
+            "estimator.kind": args.estimator,
+            "camera.pace": args.pace,
+            "recording.path": args.record,
+        }
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from bubble_rt.config import ConfigError
+    from bubble_rt.daemon import Daemon, DaemonError
+    from bubble_rt.sources import SourceError
+
+    logging.basicConfig(level=logging.INFO, format="bubble-rt serve: %(message)s")
+    try:
+        cfg = build_config(args)
+    except ConfigError as exc:
+        print(f"bubble-rt serve: invalid configuration: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    try:
+        daemon = Daemon(cfg).start()
+    except (DaemonError, SourceError) as exc:
+        print(f"bubble-rt serve: {exc}", file=sys.stderr)
+        return 1
+    serve_until(daemon, stop, args.duration, args.echo)
+    return 0
+
+
+def install_signal_handlers(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set ``stop`` (the daemon then shuts down within its timeout)."""
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+
+
+def serve_until(
+    daemon: Any, stop: threading.Event, duration: float = 0.0, echo: bool = False
+) -> None:
+    """Run a started daemon until ``stop`` (or ``duration`` seconds), then stop it cleanly."""
+    import time
+
+    print(
+        f"bubble-rt serve: sensor {daemon.config.sensor_id!r}, camera "
+        f"{daemon.config.camera.source}, pressure {daemon.config.pressure.source}; publishing "
+        f"on {daemon.pub_address}, control on {daemon.control_address}",
+        file=sys.stderr,
+        flush=True,
+    )
+    echo_thread = None
+    if echo:
+        from bubble_rt.commands.echo import echo as echo_loop
+
+        echo_thread = threading.Thread(
+            target=echo_loop,
+            kwargs={"address": daemon.pub_address, "control": daemon.control_address, "stop": stop},
+            daemon=True,
+        )
+        echo_thread.start()
+    end = time.monotonic() + duration if duration > 0 else None
+    try:
+        while not stop.wait(0.1):
+            if end is not None and time.monotonic() >= end:
+                break
+    finally:
+        stop.set()
+        daemon.stop()
+        if echo_thread is not None:
+            echo_thread.join(0.5)
+    rec = "; recording finalised" if daemon.config.recording.path else ""
+    print(
+        f"bubble-rt serve: stopped after {daemon.frames_published} frames "
+        f"({daemon.frames_dropped} dropped){rec}",
+        file=sys.stderr,
+        flush=True,
+    )

@@ -1,0 +1,188 @@
+"""Small fakes for the daemon tests: a scripted camera and a processor without the estimator."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from bubble_rt.camera import Camera
+from bubble_rt.config import DaemonConfig
+from bubble_rt.frames import Frame
+from bubble_rt.mesh import Mesh
+from bubble_rt.sources import ConstantPressure, IterableCamera
+
+H, W = 24, 32
+P0 = 101325.0
+_MESH: dict[str, Mesh] = {}
+
+
+def coarse_mesh() -> Mesh:
+    if "m" not in _MESH:
+        _MESH["m"] = Mesh.preset("coarse")
+    return _MESH["m"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def fake_config(**overrides: Any) -> DaemonConfig:
+    base = {
+        "network.pub": f"tcp://127.0.0.1:{free_port()}",
+        "network.control": f"tcp://127.0.0.1:{free_port()}",
+        "network.status_period_s": 0.2,
+        "reference.frames": 3,
+        "camera.stall_timeout_s": 0.3,
+    }
+    base.update(overrides)
+    return DaemonConfig().with_overrides(**base)
+
+
+def make_frame(i: int, push: float = 0.0) -> Frame:
+    """A tiny synthetic frame; ``push`` (N) is what the fake processor reports as net force."""
+    rgb = np.full((H, W, 3), i % 255, np.uint8)
+    depth = np.full((H, W), 0.07, np.float32)
+    return Frame(
+        rgb=rgb, depth=depth, pressure_pa=P0 + 10.0 * push, t=i / 30.0, index=i, meta={"push": push}
+    )
+
+
+class ScriptedCamera(IterableCamera):
+    """Endless synthetic frames; ``pause`` stalls it, ``fail_next`` makes it raise once."""
+
+    def __init__(self, rate_hz: float | None = 100.0, lossless: bool = False) -> None:
+        self.pause = threading.Event()
+        self.fail_next = threading.Event()
+        self.sessions = 0
+        super().__init__(
+            self._gen,
+            Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2),
+            rate_hz=rate_hz,
+            lossless=lossless,
+        )
+        self.retry_s = 0.05
+        self.name = self.stats.name = "scripted"
+
+    def _gen(self):  # type: ignore[no-untyped-def]
+        self.sessions += 1
+        i = 0
+        while not self._stop.is_set():
+            while self.pause.is_set() and not self._stop.is_set():
+                self._stop.wait(0.01)
+            if self.fail_next.is_set():
+                self.fail_next.clear()
+                raise RuntimeError("device unplugged")
+            yield make_frame(i, push=1.0 + (i % 3))
+            i += 1
+
+
+class FakeProcessor:
+    """Force = (rgb[0, 0, 0] mod 5) + 1 newtons along -z on the first 5 interior nodes."""
+
+    instances: list[FakeProcessor] = []
+
+    def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
+        self.mesh = coarse_mesh()
+        self.reference = SimpleNamespace(
+            pressure_pa=float(np.mean([f.pressure_pa for f in frames]))
+        )
+        self.params: dict[str, float] = {}
+        self.references = 1
+        self.nodes = np.flatnonzero(self.mesh.interior)[:5]
+        self.delay_s = 0.0
+        FakeProcessor.instances.append(self)
+
+    def stage1(self, frame: Frame) -> Any:
+        # Derived from the image so that a recording replays to the same outputs.
+        return float(frame.rgb[0, 0, 0] % 5) + 1.0 if frame.rgb is not None else 0.0
+
+    def stage2(self, frame: Frame, data: Any) -> Any:
+        if self.delay_s:
+            threading.Event().wait(self.delay_s)
+        n = self.mesh.n_nodes
+        f = np.zeros((n, 3))
+        f[self.nodes, 2] = -data / len(self.nodes)
+        contact = np.zeros(n, bool)
+        contact[self.nodes] = True
+        return SimpleNamespace(
+            node_forces=f,
+            normal_pressure=np.where(contact, 5000.0, 0.0),
+            contact=contact,
+            net_force=f.sum(axis=0),
+            info=SimpleNamespace(
+                status="solved",
+                iterations=3,
+                primal_residual=1e-6,
+                dual_residual=1e-6,
+                objective=1.0,
+            ),
+            timings_ms={"solve": 0.1, "post": 0.01},
+            valid_node_fraction=1.0,
+        )
+
+    def set_reference(self, frames: list[Frame]) -> None:
+        self.references += 1
+
+    def reconfigure(self, params: dict[str, float]) -> None:
+        self.params.update(params)
+
+
+class FakeSensor:
+    """The microcontroller side of a pseudo-terminal, behind a symlink that can be re-pointed."""
+
+    def __init__(self, link: str) -> None:
+        self.link = link
+        self.open()
+
+    def open(self) -> None:
+        import tty
+
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        if os.path.lexists(self.link):
+            os.unlink(self.link)
+        os.symlink(os.ttyname(self.slave), self.link)
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+    def vanish(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def constant_pressure() -> tuple[ConstantPressure, None]:
+    return ConstantPressure(P0), None
+
+
+def main() -> None:
+    """Run a daemon on the fakes like `bubble-rt serve` does (signal handling included)."""
+    import argparse
+
+    from bubble_rt.commands.serve import install_signal_handlers, serve_until
+    from bubble_rt.daemon import Daemon
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--pub", required=True)
+    ap.add_argument("--control", required=True)
+    ap.add_argument("--record", default="")
+    a = ap.parse_args()
+    cfg = fake_config(
+        **{"network.pub": a.pub, "network.control": a.control, "recording.path": a.record}
+    )
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    d = Daemon(
+        cfg, camera=ScriptedCamera(), pressure=constant_pressure(), processor_factory=FakeProcessor
+    ).start()
+    serve_until(d, stop)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""The daemon with the real estimator on the real punyo recording (untouched membrane)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bubble_rt.client import Controller, Subscriber
+from bubble_rt.daemon import Daemon
+from daemon_fakes import fake_config
+
+pytestmark = pytest.mark.timeout(300)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="shared real data absent")
+def test_replay_of_real_recording_gives_no_force_without_contact(tmp_path):
+    cfg = fake_config(
+        **{
+            "camera.source": f"replay:{DATA}",
+            "camera.pace": "fast",
+            "camera.loop": False,
+            "camera.stall_timeout_s": 5.0,
+            "reference.frames": 5,
+            "estimator.mesh": "coarse",
+            "recording.path": str(tmp_path / "real.mcap"),
+        }
+    )
+    d = Daemon(cfg).start()
+    try:
+        with Subscriber(d.pub_address, d.control_address, timeout_s=120) as sub:
+            mesh = sub.mesh
+            frames = list(sub.frames(count=15, timeout_s=60))
+        with Controller(d.control_address) as c:
+            c.set_params(k_f=0.5)
+            assert "k_f = 0.5" in c.get_config()
+    finally:
+        d.stop()
+    # 20 frames: 5 make the reference, 15 are processed losslessly.
+    assert len(frames) == 15 and mesh.n_nodes == 227
+    for f in frames:
+        assert np.all(np.isfinite(f.node_forces)) and np.all(np.isfinite(f.net_force))
+        assert {"flow", "lift", "solve"} <= set(f.timings_ms)
+        assert f.solver_status in ("solved", "max_iter_reached", "time_limit_reached")
+    # The membrane is untouched: only sensor noise, no sizeable force, little contact.
+    assert max(np.linalg.norm(f.net_force) for f in frames) < 1.0
+    assert np.mean([f.contact.mean() for f in frames]) < 0.05

@@ -1,0 +1,78 @@
+"""End to end: `bubble-rt serve` on the simulated demo scene, checked against its ground truth."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from bubble_rt.client import Controller, Subscriber
+from daemon_fakes import free_port
+
+pytestmark = [pytest.mark.timeout(400), pytest.mark.slow]
+
+
+def scene_truth() -> tuple[np.ndarray, int]:
+    """Net force (F x 3, N) the indenter applies in each demo frame, and the frame count."""
+    try:
+        from bubble_rt.sim import Simulator
+    except ImportError:
+        from bubble_rt.sim.simulator import Simulator
+
+    sim = Simulator("demo")
+    run = sim.run  # cached physics (the daemon computed it first if it was missing)
+    interior = np.ones(run.ref_vertices.shape[0], bool)
+    interior[run.boundary] = False
+    f = run.contact_forces[:, interior].sum(axis=1)
+    return f, int(sim.scene.frames)
+
+
+def test_daemon_on_simulated_scene_matches_ground_truth():
+    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bubble_rt", "serve", "--pub", pub, "--control", ctl],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        with Subscriber(pub, ctl, timeout_s=300) as sub:
+            mesh = sub.fetch_mesh(300)
+            frames = list(sub.frames(count=150, timeout_s=60))
+        with Controller(ctl) as c:
+            status = c.status()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = proc.stderr.read() if proc.stderr else ""
+    assert proc.returncode == 0, err
+    assert len(frames) >= 30, err
+    assert mesh.n_nodes == 390
+    assert status.state in ("running", "degraded") and status.frames_published >= 30
+
+    truth, n_scene = scene_truth()
+    got = np.array([f.net_force for f in frames])
+    assert np.all(np.isfinite(got))
+    for f in frames:
+        assert np.all(np.isfinite(f.node_forces)) and f.node_forces.shape == (390, 3)
+        assert f.mesh_id == mesh.mesh_id and f.latency_ms > 0
+    want = truth[[f.frame_index % n_scene for f in frames]]
+    pressing = np.linalg.norm(want, axis=1) > 2.0
+    assert pressing.sum() >= 10, "the demo presses during the frames received"
+    # Loose agreement where the indenter presses: force points the same way (-z, into the
+    # dome) and has the right order of magnitude.
+    g, w = got[pressing], want[pressing]
+    assert np.all(g[:, 2] < 0)
+    cos = np.sum(g * w, axis=1) / (np.linalg.norm(g, axis=1) * np.linalg.norm(w, axis=1))
+    assert np.median(cos) > 0.8
+    ratio = np.linalg.norm(g, axis=1) / np.linalg.norm(w, axis=1)
+    assert 0.3 < np.median(ratio) < 3.0
+    # Contact where the truth says the indenter presses.
+    assert np.mean([f.contact.any() for f, p in zip(frames, pressing, strict=True) if p]) > 0.8

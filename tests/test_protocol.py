@@ -1,0 +1,173 @@
+"""Protocol: generated code up to date, round trips, request parsing."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bubble_rt import protocol
+from bubble_rt.protocol import Patch, ProtocolError, pb
+
+PROTO_DIR = Path(__file__).resolve().parents[1] / "proto"
+
+
+def _serialized_descriptor(generated: Path) -> bytes:
+    tree = ast.parse(generated.read_text())
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Call)
+            and getattr(node.func, "attr", "") == "AddSerializedFile"
+            and node.args
+        ):
+            return ast.literal_eval(node.args[0])
+    raise AssertionError(f"no AddSerializedFile in {generated}")
+
+
+@pytest.mark.parametrize("stem", ["bubble_rt", "foxglove_raw_image"])
+def test_generated_code_is_up_to_date(stem, tmp_path):
+    import importlib
+
+    protos = sorted((PROTO_DIR / "bubble_rt" / "v1").glob("*.proto"))
+    assert protos, "proto/bubble_rt/v1 holds the schema"
+    subprocess.run(
+        [sys.executable, "-m", "grpc_tools.protoc", f"-I{PROTO_DIR}", f"--python_out={tmp_path}"]
+        + [str(p) for p in protos],
+        check=True,
+    )
+    fresh = _serialized_descriptor(tmp_path / "bubble_rt" / "v1" / f"{stem}_pb2.py")
+    installed = importlib.import_module(f"bubble_rt.proto_gen.bubble_rt.v1.{stem}_pb2")
+    assert installed.DESCRIPTOR.serialized_pb == fresh, (
+        f"{stem}_pb2 is stale: rebuild (bash .ci/dev-build.sh) after editing proto/"
+    )
+
+
+def test_package_is_versioned():
+    assert pb.DESCRIPTOR.package == "bubble_rt.v1"
+    assert pb.PROTOCOL_VERSION_1 == protocol.PROTOCOL_VERSION
+
+
+def test_force_frame_round_trip():
+    rng = np.random.default_rng(1)
+    n = 11
+    forces = rng.normal(size=(n, 3))
+    contact = rng.random(n) > 0.5
+    patch = Patch(
+        centroid=np.array([0.01, 0.0, 0.02]),
+        area=1e-4,
+        force=np.array([0, 0, -1.0]),
+        nodes=np.array([1, 2]),
+    )
+    info = type(
+        "I",
+        (),
+        {
+            "status": "solved",
+            "iterations": 7,
+            "primal_residual": 1e-5,
+            "dual_residual": 2e-5,
+            "objective": float("nan"),
+        },
+    )()
+    msg = protocol.encode_force_frame(
+        sensor_id="s",
+        seq=3,
+        frame_index=9,
+        capture_time_ns=1000,
+        mesh_id="m",
+        net_force=forces.sum(0),
+        node_forces=forces,
+        normal_pressure=np.arange(n, dtype=float),
+        contact=contact,
+        patches=[patch],
+        pressure_delta_pa=12.5,
+        pressure_pa=101337.5,
+        timings_ms={"flow": 3.0, "solve": 4.0},
+        solver_info=info,
+        valid_node_fraction=0.9,
+        degraded_reasons=["pressure stale (300 ms)"],
+    )
+    protocol.stamp_publish(msg, 5_001_000)
+    f = protocol.decode_force_frame(msg.SerializeToString())
+    np.testing.assert_array_equal(f.node_forces, forces)
+    np.testing.assert_array_equal(f.contact, contact)
+    assert f.seq == 3 and f.frame_index == 9 and f.latency_ms == pytest.approx(5.0)
+    assert f.timings_ms == {"flow": 3.0, "solve": 4.0}
+    assert f.solver_status == "solved" and f.solver_iterations == 7
+    assert f.degraded and f.degraded_reasons == ["pressure stale (300 ms)"]
+    assert len(f.patches) == 1 and list(f.patches[0].nodes) == [1, 2]
+    assert msg.solver.objective == 0.0  # non-finite values are not sent
+    s = f.summary()
+    assert s["contact_nodes"] == int(contact.sum()) and s["degraded"]
+
+
+def test_mesh_round_trip_and_id():
+    v = np.random.default_rng(2).random((4, 3))
+    t = np.array([[0, 1, 2], [0, 2, 3]])
+    m = protocol.decode_mesh(protocol.encode_mesh("s", v, t, [0, 1], np.ones(4)))
+    np.testing.assert_array_equal(m.vertices, v)
+    np.testing.assert_array_equal(m.triangles, t)
+    assert m.mesh_id == protocol.mesh_id_of(v, t) and len(m.mesh_id) == 16
+    assert protocol.mesh_id_of(v + 1e-9, t) != m.mesh_id
+
+
+def test_decode_mesh_rejects_bad_indices():
+    msg = protocol.encode_mesh("s", np.zeros((3, 3)), np.array([[0, 1, 5]]), [])
+    with pytest.raises(ProtocolError, match="out of range"):
+        protocol.decode_mesh(msg)
+
+
+def test_decode_force_frame_rejects_garbage():
+    with pytest.raises(ProtocolError):
+        protocol.decode_force_frame(b"\xff\xff\xff\xff")
+
+
+def test_topics():
+    assert protocol.force_topic("b0") == b"force.b0"
+    assert protocol.status_topic("b0") == b"status.b0"
+
+
+def test_parse_request_kinds():
+    for kind in protocol.REQUESTS:
+        got, _ = protocol.parse_request(protocol.make_request(kind).SerializeToString())
+        assert got == kind
+
+
+def test_make_request_rejects_unknown():
+    with pytest.raises(ProtocolError, match="unknown request"):
+        protocol.make_request("reboot")
+    with pytest.raises(ProtocolError, match="unknown parameter"):
+        protocol.make_request("set_params", nu=0.3)
+
+
+def test_set_params_only_sends_given_fields():
+    _, req = protocol.parse_request(
+        protocol.make_request("set_params", k_f=0.4).SerializeToString()
+    )
+    assert protocol.params_dict(req.set_params) == {"k_f": 0.4}
+
+
+def test_oversized_request_named():
+    with pytest.raises(ProtocolError, match="too large"):
+        protocol.parse_request(b"\x00" * (protocol.MAX_REQUEST_BYTES + 1))
+
+
+def test_status_decode():
+    msg = pb.Status(state=pb.Status.DEGRADED, reason="camera stalled", frames_dropped=4)
+    msg.sources.add(name="cam", received=3, errors=1, last_error="x", age_s=0.5)
+    s = protocol.decode_status(msg.SerializeToString())
+    assert s.state == "degraded" and s.reason == "camera stalled" and s.frames_dropped == 4
+    assert s.sources["cam"]["errors"] == 1
+
+
+def test_client_imports_no_estimator():
+    code = (
+        "import sys, bubble_rt.client\n"
+        "bad = [m for m in sys.modules if m.startswith(('bubble_rt._core', 'bubble_rt.estimator',"
+        " 'bubble_rt.daemon', 'bubble_rt.sources', 'scipy', 'cv2'))]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

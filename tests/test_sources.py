@@ -1,0 +1,478 @@
+"""Capture sources: slots, pressure sync, the serial line protocol on a pty, RealSense fake."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import types
+
+import numpy as np
+import pytest
+from bubble_rt.camera import Camera
+from bubble_rt.config import DaemonConfig
+from bubble_rt.sources import (
+    ConstantPressure,
+    IterableCamera,
+    LatestSlot,
+    LineError,
+    PressureBuffer,
+    RealSenseCamera,
+    SerialPressure,
+    SourceError,
+    make_camera_source,
+    make_pressure_source,
+    pair_pressure,
+    parse_pressure_line,
+)
+from daemon_fakes import FakeSensor, make_frame
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def wait_for(pred, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+# ------------------------------------------------------------------ slots and sync
+def test_latest_slot_keeps_newest_and_counts_drops():
+    s: LatestSlot[int] = LatestSlot()
+    assert s.put(1) and not s.put(2) and not s.put(3)
+    assert s.get(0.1) == 3 and s.dropped == 2
+    assert s.get(0.01) is None
+
+
+def test_latest_slot_blocking_put_waits_for_consumer():
+    s: LatestSlot[int] = LatestSlot()
+    s.put(1)
+    done = threading.Event()
+    threading.Thread(target=lambda: (s.put(2, block=True), done.set()), daemon=True).start()
+    assert not done.wait(0.2)
+    assert s.get(1.0) == 1
+    assert done.wait(2.0) and s.get(1.0) == 2 and s.dropped == 0
+
+
+def test_latest_slot_close_releases_blocked_producer():
+    s: LatestSlot[int] = LatestSlot()
+    s.put(1)
+    done = threading.Event()
+    threading.Thread(target=lambda: (s.put(2, block=True), done.set()), daemon=True).start()
+    s.close()
+    assert done.wait(2.0)
+
+
+def test_pressure_interpolated_at_capture_time():
+    b = PressureBuffer(8)
+    b.push(10.00, 1000.0)
+    b.push(10.01, 1010.0)
+    p, _, age = b.at(10.004)
+    assert p == pytest.approx(1004.0) and age == 0.0
+
+
+def test_pressure_held_after_last_sample_with_age():
+    b = PressureBuffer(8)
+    b.push(1.0, 5.0)
+    assert b.at(1.3) == (5.0, 1.0, pytest.approx(0.3))
+
+
+def test_pressure_buffer_is_bounded():
+    b = PressureBuffer(4)
+    for i in range(100):
+        b.push(float(i), float(i))
+    assert len(b) == 4 and b.at(0.0)[0] == 96.0
+
+
+def test_out_of_order_pressure_ignored():
+    b = PressureBuffer(4)
+    b.push(2.0, 1.0)
+    b.push(1.0, 9.0)
+    assert len(b) == 1
+
+
+def test_pair_pressure_marks_stale():
+    b = PressureBuffer(4)
+    b.push(0.0, 100000.0)
+    f = make_frame(30)  # t = 1.0 s
+    g, reasons = pair_pressure(f, b, stale_timeout_s=0.25)
+    assert g.pressure_pa == 100000.0 and reasons == ["pressure stale (1000 ms)"]
+    _, ok = pair_pressure(make_frame(3), b, stale_timeout_s=0.25)
+    assert ok == []
+
+
+def test_pair_pressure_without_readings():
+    _, reasons = pair_pressure(make_frame(0), PressureBuffer(4), 0.25)
+    assert reasons == ["no pressure reading"]
+
+
+def test_constant_pressure_never_stale():
+    g, reasons = pair_pressure(make_frame(99), ConstantPressure(1.5e5), 0.01)
+    assert g.pressure_pa == 1.5e5 and reasons == []
+
+
+# ------------------------------------------------------------------ line protocol
+def test_line_hpa_with_timestamp():
+    assert parse_pressure_line(b"1013.25 hPa t=123456\r") == (101325.0, 123456.0)
+
+
+def test_line_pascal_unit():
+    assert parse_pressure_line(b"101325 Pa") == (101325.0, None)
+
+
+def test_line_default_unit_hpa():
+    assert parse_pressure_line(b"1000.5") == (100050.0, None)
+
+
+def test_line_default_unit_pa():
+    assert parse_pressure_line(b"99000", default_unit="Pa") == (99000.0, None)
+
+
+def test_line_mbar_is_hpa():
+    assert parse_pressure_line(b"1000 mbar")[0] == 100000.0
+
+
+def test_line_comment_and_blank_ignored():
+    assert parse_pressure_line(b"# MPRLS ready") is None
+    assert parse_pressure_line(b"  \r") is None
+
+
+def test_line_non_numeric():
+    with pytest.raises(LineError) as e:
+        parse_pressure_line(b"pressure: high")
+    assert e.value.kind == "non_numeric"
+
+
+def test_line_nan_is_non_numeric():
+    with pytest.raises(LineError) as e:
+        parse_pressure_line(b"nan hPa")
+    assert e.value.kind == "non_numeric"
+
+
+def test_line_binary_garbage():
+    with pytest.raises(LineError) as e:
+        parse_pressure_line(b"\xff\xfe\x00\x13")
+    assert e.value.kind == "garbage"
+
+
+def test_line_out_of_range():
+    with pytest.raises(LineError) as e:
+        parse_pressure_line(b"12 hPa")  # a truncated "1012"
+    assert e.value.kind == "out_of_range"
+
+
+# ------------------------------------------------------------------ serial on a pty
+@pytest.fixture
+def sensor(tmp_path):
+    s = FakeSensor(str(tmp_path / "ttyMPRLS"))
+    buf = PressureBuffer(64)
+    src = SerialPressure(s.link, buf, reconnect_s=0.05)
+    src.start()
+    assert wait_for(lambda: src.stats.connected)
+    yield s, src, buf
+    src.stop(1.0)
+    try:
+        s.vanish()
+    except OSError:
+        pass
+
+
+def test_serial_good_and_bad_lines_counted(sensor):
+    s, src, buf = sensor
+    s.write(b"013.2 hPa\n")  # joined mid-line: the first line is discarded as partial
+    s.write(b"1013.25 hPa t=10\n1013.30 hPa t=20\n")
+    s.write(b"\xff\xfe garbage\n")
+    s.write(b"hello\n")
+    s.write(b"5 hPa\n")
+    s.write(b"# comment\n")
+    s.write(b"1013.35 hPa t=30\n")
+    assert wait_for(lambda: src.stats.received == 3)
+    assert wait_for(lambda: src.stats.errors.get("out_of_range") == 1)
+    assert src.stats.errors == {"partial": 1, "garbage": 1, "non_numeric": 1, "out_of_range": 1}
+    assert buf.at(time.time())[0] == pytest.approx(101335.0)
+    assert src.last_sensor_ms == 30.0
+
+
+def test_serial_partial_line_reassembled(sensor):
+    s, src, _ = sensor
+    s.write(b"\n1013")
+    time.sleep(0.1)
+    s.write(b".0 hPa\n")
+    assert wait_for(lambda: src.stats.received == 1)
+    assert src.stats.n_errors == 0
+
+
+def test_serial_overlong_line_is_partial(sensor):
+    s, src, _ = sensor
+    s.write(b"\n" + b"9" * 300 + b"\n1000 hPa\n1001 hPa\n")
+    assert wait_for(lambda: src.stats.received >= 1)
+    assert src.stats.errors.get("partial", 0) >= 1
+
+
+def test_serial_vanished_port_is_reported_and_reopened(sensor):
+    s, src, buf = sensor
+    s.write(b"\n1000 hPa\n")
+    assert wait_for(lambda: src.stats.received == 1)
+    s.vanish()
+    assert wait_for(lambda: src.stats.errors.get("port", 0) >= 1)
+    assert "serial port" in src.stats.last_error
+    assert src.alive
+    s.open()  # the sensor is plugged back in
+    assert wait_for(lambda: src.stats.connected)
+    time.sleep(0.1)
+    s.write(b"\n1002 hPa\n")
+    assert wait_for(lambda: src.stats.received == 2)
+    assert buf.at(time.time())[0] == pytest.approx(100200.0)
+
+
+def test_serial_missing_port_survives(tmp_path):
+    src = SerialPressure(str(tmp_path / "nope"), PressureBuffer(4), reconnect_s=0.05)
+    src.start()
+    try:
+        assert wait_for(lambda: src.stats.errors.get("port", 0) >= 2)
+        assert src.alive
+    finally:
+        src.stop(1.0)
+
+
+def test_pressure_source_factory_serial():
+    cfg = DaemonConfig().with_overrides(**{"pressure.source": "serial:/dev/ttyACM0"})
+    buf, src = make_pressure_source(cfg.pressure, camera=None)  # type: ignore[arg-type]
+    assert isinstance(src, SerialPressure) and src.port == "/dev/ttyACM0" and src.baud == 115200
+
+
+# ------------------------------------------------------------------ camera sources
+def test_iterable_camera_loops_and_feeds_camera_pressure():
+    frames = [make_frame(i, push=1.0) for i in range(3)]
+    cam = IterableCamera(lambda: iter(frames), Camera.d405(), rate_hz=None, loop=True)
+    buf = PressureBuffer(16)
+    cam.pressure_out = buf
+    cam.start()
+    try:
+        got = []
+        end = time.monotonic() + 5
+        while len(got) < 7 and time.monotonic() < end:
+            f = cam.output.get(0.5)
+            if f is not None:
+                got.append(f)
+    finally:
+        cam.stop()
+    assert len(got) == 7
+    assert [f.index for f in got] == sorted(f.index for f in got)  # restamped, increasing
+    assert got[0].meta["source_index"] in (0, 1, 2)
+    assert len(buf) > 0 and buf.at(got[-1].t)[0] == pytest.approx(101335.0)
+
+
+def test_iterable_camera_lossless_delivers_every_frame():
+    frames = [make_frame(i) for i in range(20)]
+    cam = IterableCamera(
+        lambda: iter(frames), Camera.d405(), rate_hz=None, loop=False, lossless=True
+    )
+    cam.start()
+    got = []
+    while len(got) < 20:
+        f = cam.output.get(2.0)
+        assert f is not None
+        got.append(f.meta["source_index"])
+    cam.stop()
+    assert got == list(range(20)) and cam.output.dropped == 0
+    assert cam.finished.wait(2.0)
+
+
+class FakeRS:
+    """Just enough of pyrealsense2 for RealSenseCamera."""
+
+    def __init__(self, devices: int = 1, stall: bool = False) -> None:
+        self.devices = devices
+        self.stall = stall
+        self.stream = types.SimpleNamespace(color="color", depth="depth")
+        self.format = types.SimpleNamespace(rgb8="rgb8", z16="z16")
+        self.started = 0
+        rs = self
+
+        class Ctx:
+            def query_devices(self):
+                return ["D405"] * rs.devices
+
+        class Cfg:
+            def __init__(self):
+                self.streams = []
+
+            def enable_device(self, serial):
+                self.serial = serial
+
+            def enable_stream(self, *a):
+                self.streams.append(a)
+
+        class Frame:
+            def __init__(self, data):
+                self.data = data
+
+            def get_data(self):
+                return self.data
+
+            def __bool__(self):
+                return True
+
+        class FrameSet:
+            def __init__(self, k):
+                self.k = k
+
+            def get_timestamp(self):
+                return 1000.0 + self.k
+
+            def get_color_frame(self):
+                return Frame(np.full((480, 640, 3), self.k % 255, np.uint8))
+
+            def get_depth_frame(self):
+                return Frame(np.full((480, 640), 700, np.uint16))
+
+        class Intr:
+            fx, fy, ppx, ppy, width, height = 390.0, 391.0, 320.5, 240.5, 640, 480
+            coeffs = [0.1, 0.0, 0.0, 0.0, 0.0]
+
+        class Profile:
+            def get_device(self):
+                return types.SimpleNamespace(
+                    first_depth_sensor=lambda: types.SimpleNamespace(get_depth_scale=lambda: 1e-4)
+                )
+
+            def get_stream(self, s):
+                return types.SimpleNamespace(
+                    as_video_stream_profile=lambda: types.SimpleNamespace(
+                        get_intrinsics=lambda: Intr()
+                    )
+                )
+
+        class Pipeline:
+            def __init__(self):
+                self.k = 0
+
+            def start(self, cfg):
+                rs.started += 1
+                rs.cfg = cfg
+                return Profile()
+
+            def stop(self):
+                pass
+
+            def wait_for_frames(self, timeout_ms):
+                if rs.stall:
+                    time.sleep(0.01)
+                    raise RuntimeError("Frame didn't arrive within 1000")
+                time.sleep(0.005)
+                self.k += 1
+                return FrameSet(self.k)
+
+        class Align:
+            def __init__(self, to):
+                self.to = to
+
+            def process(self, frames):
+                return frames
+
+        self.context, self.config, self.pipeline, self.align = Ctx, Cfg, Pipeline, Align
+
+
+def test_realsense_absent_package_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyrealsense2", None)
+    with pytest.raises(SourceError, match=r"pip install 'bubble_rt\[realsense\]'"):
+        RealSenseCamera().prepare()
+
+
+def test_realsense_no_device_is_a_clear_error():
+    with pytest.raises(SourceError, match="no RealSense device found"):
+        RealSenseCamera(rs_module=FakeRS(devices=0)).prepare()
+
+
+def test_realsense_frames_aligned_and_scaled():
+    rs = FakeRS()
+    cam = RealSenseCamera(serial="123", rs_module=rs)
+    cam.prepare()
+    assert cam.camera.fx == 390.0 and cam.camera.cx == 320.5 and cam.camera.distortion[0] == 0.1
+    assert ("color", 640, 480, "rgb8", 30) in rs.cfg.streams and rs.cfg.serial == "123"
+    cam.start()
+    try:
+        f = cam.output.get(5.0)
+    finally:
+        cam.stop()
+    assert f is not None and f.rgb.shape == (480, 640, 3) and f.depth.dtype == np.float32
+    assert f.depth[0, 0] == pytest.approx(0.07)
+    assert not f.meta["has_pressure"] and f.meta["device_time_ms"] > 1000
+
+
+def test_realsense_stall_counted_then_restarted():
+    rs = FakeRS(stall=True)
+    cam = RealSenseCamera(rs_module=rs, max_stalls=2)
+    cam.retry_s = 0.05
+    cam.prepare()
+    cam.start()
+    try:
+        assert wait_for(lambda: rs.started >= 2)
+        assert cam.stats.errors["stall"] >= 2 and cam.stats.errors["disconnected"] >= 1
+        rs.stall = False
+        assert cam.output.get(5.0) is not None
+    finally:
+        cam.stop()
+
+
+def test_camera_factory_replay_missing_file():
+    cfg = DaemonConfig().with_overrides(**{"camera.source": "replay:/no/such.mcap"})
+    with pytest.raises(SourceError, match="no such recording"):
+        make_camera_source(cfg.camera)
+
+
+def test_camera_factory_realsense():
+    cfg = DaemonConfig().with_overrides(**{"camera.source": "realsense:42"})
+    cam = make_camera_source(cfg.camera)
+    assert isinstance(cam, RealSenseCamera) and cam.serial == "42"
+
+
+class FakeSimulator:
+    """The bubble_rt.sim.Simulator interface the sim source uses."""
+
+    renders = 0
+
+    def __init__(self, scene):
+        self.scene = types.SimpleNamespace(frames=4, rates=types.SimpleNamespace(camera_hz=30.0))
+        self.camera = Camera.d405()
+
+    def frames(self):
+        for i in range(4):
+            FakeSimulator.renders += 1
+            yield make_frame(i)
+
+    def reference_frames(self, n):
+        return [make_frame(-n + k) for k in range(n)]
+
+
+def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
+    from bubble_rt.sources import SimCamera
+
+    monkeypatch.setitem(
+        sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=FakeSimulator)
+    )
+    FakeSimulator.renders = 0
+    cam = SimCamera("demo", lossless=True)
+    assert [f.index for f in cam.reference_frames(2)] == [-2, -1]
+    cam.start()
+    try:
+        got = [cam.output.get(5.0) for _ in range(10)]
+    finally:
+        cam.stop()
+    assert [f.index for f in got] == list(range(10))
+    assert FakeSimulator.renders == 4  # later passes replay the first one
+
+
+def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
+    from bubble_rt.sources import SimCamera
+
+    def boom(scene):
+        raise ValueError("no scene named 'nope'")
+
+    monkeypatch.setitem(sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=boom))
+    with pytest.raises(SourceError, match="cannot load simulator scene 'nope'"):
+        SimCamera("nope")
