@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 from bubble_rt.mesh import PRESET_NODES, Mesh, MeshError, MeshGeometry
@@ -135,3 +137,24 @@ def test_nan_vertex_is_named():
 def test_unknown_preset():
     with pytest.raises(ValueError, match="unknown mesh preset"):
         Mesh.preset("huge")
+
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+@pytest.mark.skipif(not SHARED.exists(), reason="../shared/data is not beside this clone")
+def test_load_public_reference_mesh():
+    m = Mesh.load(SHARED / "reference-mesh-390.vtk")
+    assert m.n_nodes == 390
+    assert len(m.boundary) > 0
+    # Rim in the plane z = 0.054 m, dome above it, normals away from the camera (+z).
+    assert np.allclose(m.vertices[m.boundary, 2], 0.054, atol=1e-6)
+    p = m.vertices[m.triangles]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert n.sum(axis=0)[2] > 0
+
+
+def test_msh_round_trip(tmp_path):
+    m = Mesh.preset("coarse")
+    m.save(tmp_path / "m.msh")
+    assert np.allclose(Mesh.load(tmp_path / "m.msh").vertices, m.vertices)
