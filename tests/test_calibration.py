@@ -109,3 +109,17 @@ def test_calibration_powell_improves():
     res = calibrate(prob, method="Powell", max_evals=30)
     assert res.loss < res.initial_loss
     assert res.evaluations <= 31
+
+
+def test_loss_same_on_dask_local_cluster_as_processes():
+    distributed = pytest.importorskip("distributed")
+    prob = _problem(4)
+    with FanOut(workers=2) as fan:
+        expected = prob.loss(DEFAULTS, fan)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        with FanOut(scheduler=cluster.scheduler_address) as fan:
+            assert fan.parallelism == 2
+            got = prob.loss(DEFAULTS, fan)
+    assert got == pytest.approx(expected, rel=1e-12)
