@@ -305,12 +305,11 @@ class CalibTrajectoryTask:
     """One calibration trajectory to simulate and track (picklable)."""
 
     geometry: str
-    seed: int
+    trajectory: int
     n_frames: int
+    seed: int = CALIB_SEED_BASE
     mesh: str = "medium"
     flow_method: str = "default"
-    width: int = 640
-    height: int = 480
     n_reference: int = 5
 
 
@@ -319,15 +318,10 @@ def default_trajectories(
 ) -> list[CalibTrajectoryTask]:
     """The paper's calibration set: five round-indenter trajectories and one point (~205 frames).
 
-    Seeds start at CALIB_SEED_BASE, disjoint from the evaluation seeds.
+    The dataset's master seed is CALIB_SEED_BASE, disjoint from the evaluation's.
     """
-    tasks = [
-        CalibTrajectoryTask("round", CALIB_SEED_BASE + k, frames, **kw) for k in range(n_round)
-    ]
-    tasks += [
-        CalibTrajectoryTask("point", CALIB_SEED_BASE + 500 + k, frames, **kw)
-        for k in range(n_point)
-    ]
+    tasks = [CalibTrajectoryTask("round", k, frames, **kw) for k in range(n_round)]
+    tasks += [CalibTrajectoryTask("point", k, frames, **kw) for k in range(n_point)]
     return tasks
 
 
@@ -338,10 +332,9 @@ def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
 
     traj = simulate_trajectory(
         task.geometry,
-        task.seed,
+        task.trajectory,
         task.n_frames,
-        width=task.width,
-        height=task.height,
+        task.seed,
         n_reference=task.n_reference,
         render=task.flow_method != "oracle",
     )

@@ -428,15 +428,15 @@ class EvalTask:
 
     Attributes:
         geometry: indenter name (round, point, line, square, split).
-        seed: trajectory seed (eval seeds start at EVAL_SEED_BASE, disjoint from calibration).
-        trajectory: index within its geometry.
+        seed: the dataset's master seed (EVAL_SEED_BASE; calibration uses CALIB_SEED_BASE, so
+            the two sets never share a trajectory).
+        trajectory: index within its geometry (the dataset scene "<geometry>-<trajectory>").
         n_frames: frames per trajectory.
         mesh: estimator mesh preset name or node count.
         estimators: which estimators to run.
         flow_method: FlowSettings.method for the deformation tracker ("oracle" skips rendering).
         config: estimator overrides (k_f, k_u, E) as plain floats.
         keep_fields: keep per-node fields of these frame indices (for figures).
-        width, height: rendered image size.
     """
 
     geometry: str
@@ -448,8 +448,6 @@ class EvalTask:
     flow_method: str = "default"
     config: tuple[tuple[str, float], ...] = ()
     keep_fields: tuple[int, ...] = ()
-    width: int = 640
-    height: int = 480
     n_reference: int = 5
 
 
@@ -505,12 +503,12 @@ def make_tasks(
 ) -> list[EvalTask]:
     """Tasks for ``trajectories`` trajectories per geometry with disjoint seeds."""
     tasks = []
-    for gi, g in enumerate(geometries):
+    for g in geometries:
         for k in range(trajectories):
             tasks.append(
                 EvalTask(
                     geometry=g,
-                    seed=seed_base + 1000 * gi + k,
+                    seed=seed_base,
                     trajectory=k,
                     n_frames=frames,
                     **kw,
@@ -529,27 +527,46 @@ class SimTrajectory:
     reference_surface: Any = None
 
 
+def trajectory_scene(geometry: str, trajectory: int, n_frames: int, seed: int) -> Any:
+    """Scene of trajectory ``trajectory`` of ``geometry`` in the paper's dataset procedure
+    (bubble_rt.sim.dataset) with master seed ``seed``."""
+    from bubble_rt.sim.dataset import DatasetSettings, dataset_scenes
+
+    st = DatasetSettings(per_indenter=trajectory + 1, frames=n_frames, seed=seed)
+    name = f"{geometry}-{trajectory}"
+    for scene in dataset_scenes(st):
+        if scene.name == name:
+            return scene
+    raise ValueError(f"no trajectory {name!r} in the dataset (unknown indenter {geometry!r}?)")
+
+
 def simulate_trajectory(
     geometry: str,
-    seed: int,
+    trajectory: int,
     n_frames: int,
+    seed: int,
     *,
-    width: int = 640,
-    height: int = 480,
     n_reference: int = 5,
     render: bool = True,
 ) -> SimTrajectory:
-    """One trajectory of the paper's procedure from bubble_rt.sim.dataset."""
-    from bubble_rt.sim import dataset
+    """Simulate one dataset trajectory: reference frames and the trajectory's frames.
 
-    traj = dataset.trajectory(  # type: ignore[attr-defined]
-        geometry, seed, n_frames, width=width, height=height, render=render
-    )
-    return SimTrajectory(
-        frames=list(traj.frames),
-        reference_frames=list(traj.reference_frames(n_reference)),
-        camera=traj.camera,
-    )
+    ``render=False`` adds the simulator's "oracle" effect (no images; the deformation tracker's
+    "oracle" method reads the truth's displacement field instead), dropping image effects.
+    """
+    from dataclasses import replace
+
+    from bubble_rt.sim.simulator import Simulator
+
+    scene = trajectory_scene(geometry, trajectory, n_frames, seed)
+    if not render:
+        image_effects = {"depth_noise", "depth_dropouts", "rgb_noise", "rgb_blur", "exposure"}
+        kept = tuple(e for e in scene.effects if e[0] not in image_effects)
+        scene = replace(scene, effects=kept + (("oracle", ()),))
+    sim = Simulator(scene)
+    refs = sim.reference_frames(n_reference)
+    frames = list(sim.frames())
+    return SimTrajectory(frames=frames, reference_frames=refs, camera=sim.camera)
 
 
 def estimator_mesh(name: str, traj: SimTrajectory) -> Any:
@@ -585,10 +602,9 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
     t0 = time.perf_counter()
     traj = simulate_trajectory(
         task.geometry,
-        task.seed,
+        task.trajectory,
         task.n_frames,
-        width=task.width,
-        height=task.height,
+        task.seed,
         n_reference=task.n_reference,
         render=task.flow_method != "oracle",
     )

@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         res,
         extra={
             "method": args.method,
-            "trajectories": [f"{t.geometry}:{t.seed}" for t in tasks],
+            "trajectories": [f"{t.geometry}-{t.trajectory}" for t in tasks],
+            "seed": tasks[0].seed,
             "mesh": args.mesh,
             "flow": args.flow,
         },
