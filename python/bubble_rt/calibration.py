@@ -407,25 +407,33 @@ def build_problem(
 def write_config(
     path: str | Path, result: CalibrationResult, extra: dict[str, Any] | None = None
 ) -> None:
-    """TOML the daemon and eval read: [estimator] k_f, k_u, E (+ [calibration] provenance)."""
+    """TOML the daemon and eval read: ``[estimator] k_f, k_u, youngs_modulus`` (Pa).
+
+    The key for E is the daemon config's ``youngs_modulus`` (its loader rejects unknown keys
+    and sections), so the provenance (losses, frames, settings) goes into comments.
+    """
+    import json
+
     import tomli_w
 
-    doc: dict[str, Any] = {
+    doc = {
         "estimator": {
             "k_f": result.params["k_f"],
             "k_u": result.params["k_u"],
-            "E": result.params["E"],
-        },
-        "calibration": {
-            "loss_initial": result.initial_loss,
-            "loss": result.loss,
-            "improvement": result.improvement,
-            "frames": result.n_frames,
-            "evaluations": result.evaluations,
-            "seconds": round(result.seconds, 2),
-            "initial": dict(result.initial_params),
-            **(extra or {}),
-        },
+            "youngs_modulus": result.params["E"],
+        }
     }
+    info = {
+        "loss_initial": round(result.initial_loss, 6),
+        "loss": round(result.loss, 6),
+        "improvement": round(result.improvement, 4),
+        "frames": result.n_frames,
+        "evaluations": result.evaluations,
+        "seconds": round(result.seconds, 1),
+        "initial": result.initial_params,
+        **(extra or {}),
+    }
+    header = "# written by `bubble-rt calibrate` (paper loss, method.md section 4)\n"
+    header += "".join(f"# {k}: {json.dumps(v)}\n" for k, v in info.items())
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_bytes(tomli_w.dumps(doc).encode())
+    Path(path).write_text(header + tomli_w.dumps(doc))

@@ -476,7 +476,8 @@ def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) 
 
 
 def load_config_overrides(path: str | Path | None) -> dict[str, float]:
-    """Read [estimator] k_f, k_u, E (and k_const, k_linear) from a TOML file, if given."""
+    """Read [estimator] k_f, k_u, youngs_modulus (or E), k_const, k_linear from a TOML file
+    (the daemon's config or `bubble-rt calibrate`'s output); {} when no path is given."""
     if not path:
         return {}
     import tomllib
@@ -487,6 +488,8 @@ def load_config_overrides(path: str | Path | None) -> dict[str, float]:
     for k in ("k_f", "k_u", "k_const", "k_linear", "E"):
         if k in est:
             out[k] = float(est[k])
+    if "youngs_modulus" in est:  # the daemon config's name for E
+        out["E"] = float(est["youngs_modulus"])
     mat = est.get("material", {})
     if isinstance(mat, dict) and "E" in mat:
         out["E"] = float(mat["E"])
