@@ -551,11 +551,13 @@ def simulate_trajectory(
     *,
     n_reference: int = 5,
     render: bool = True,
+    physics: Any = None,
 ) -> SimTrajectory:
     """Simulate one dataset trajectory: reference frames and the trajectory's frames.
 
     ``render=False`` adds the simulator's "oracle" effect (no images; the deformation tracker's
     "oracle" method reads the truth's displacement field instead), dropping image effects.
+    ``physics``: a simulator physics backend (default: the real one; tests pass a stand-in).
     """
     from dataclasses import replace
 
@@ -566,7 +568,7 @@ def simulate_trajectory(
         image_effects = {"depth_noise", "depth_dropouts", "rgb_noise", "rgb_blur", "exposure"}
         kept = tuple(e for e in scene.effects if e[0] not in image_effects)
         scene = replace(scene, effects=kept + (("oracle", ()),))
-    sim = Simulator(scene)
+    sim = Simulator(scene, physics=physics)
     refs = sim.reference_frames(n_reference)
     frames = list(sim.frames())
     return SimTrajectory(frames=frames, reference_frames=refs, camera=sim.camera)
