@@ -58,6 +58,8 @@ class BenchSettings:
     sweep_frames: int = 12
     sweep_scales: tuple[float, ...] = (0.5, 1.0)
     sweep_tolerances: tuple[float, ...] = (5e-2, 5e-3, 5e-5)
+    #: simulator physics backend (None: the real one; tests pass a stand-in)
+    physics: Any = None
 
     @classmethod
     def quick(cls) -> BenchSettings:
@@ -248,7 +250,9 @@ def run_bench(
     settings = replace(settings, flow_methods=_resolve_methods(settings.flow_methods))
     n_total = settings.warmup + max(settings.frames, settings.sweep_frames)
     log(f"simulating {n_total} frames ...")
-    traj = simulate_trajectory(settings.geometry, settings.trajectory, n_total, settings.seed)
+    traj = simulate_trajectory(
+        settings.geometry, settings.trajectory, n_total, settings.seed, physics=settings.physics
+    )
     frames_all = traj.frames
     base_config = estimator_config({})
     result: dict[str, Any] = {

@@ -311,6 +311,7 @@ class CalibTrajectoryTask:
     mesh: str = "medium"
     flow_method: str = "default"
     n_reference: int = 5
+    physics: Any = None  # simulator physics backend (None: the real one)
 
 
 def default_trajectories(
@@ -337,6 +338,7 @@ def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
         task.seed,
         n_reference=task.n_reference,
         render=task.flow_method != "oracle",
+        physics=task.physics,
     )
     mesh = estimator_mesh(task.mesh, traj)
     reference = Reference.capture(traj.reference_frames)

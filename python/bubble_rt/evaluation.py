@@ -437,6 +437,8 @@ class EvalTask:
         flow_method: FlowSettings.method for the deformation tracker ("oracle" skips rendering).
         config: estimator overrides (k_f, k_u, E) as plain floats.
         keep_fields: keep per-node fields of these frame indices (for figures).
+        n_reference: untouched frames averaged into the reference capture.
+        physics: simulator physics backend (None: the real one; tests pass a stand-in).
     """
 
     geometry: str
@@ -449,6 +451,7 @@ class EvalTask:
     config: tuple[tuple[str, float], ...] = ()
     keep_fields: tuple[int, ...] = ()
     n_reference: int = 5
+    physics: Any = None
 
 
 @dataclass
@@ -612,6 +615,7 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
         task.seed,
         n_reference=task.n_reference,
         render=task.flow_method != "oracle",
+        physics=task.physics,
     )
     mesh = estimator_mesh(task.mesh, traj)
     areas = lumped_areas(mesh.vertices, mesh.triangles)
