@@ -367,8 +367,13 @@ def run_sweep(
 ) -> list[dict[str, Any]]:
     """Accuracy/time points: one axis at a time around the default (medium mesh, default flow,
     default tolerance), plus the mesh axis; each point timed on ``sweep_frames`` frames."""
-    n = settings.warmup + settings.sweep_frames
-    frames = traj.frames[:n]
+    # Warm-up frames, then sweep_frames spread evenly over the trajectory: solve cost depends
+    # on the content (free space, approach, contact), so every point sees the same mix.
+    w = settings.warmup
+    rest = np.arange(w, len(traj.frames))
+    pick = rest[np.linspace(0, len(rest) - 1, min(settings.sweep_frames, len(rest))).astype(int)]
+    sel = list(range(w)) + [int(i) for i in pick]
+    frames = [traj.frames[i] for i in sel]
     default_mesh = "medium" if "medium" in meshes else next(iter(meshes))
     default_method = settings.flow_methods[0]
     points: list[tuple[str, str, float | None, float | None]] = [
@@ -397,7 +402,7 @@ def run_sweep(
             flow=flow,
             config=config,
             warmup=settings.warmup,
-            gt_masks=gts[mesh_name][:n],
+            gt_masks=[gts[mesh_name][i] for i in sel],
         )
         s = st.summary()
         is_default = scale is None and tol is None and method == default_method

@@ -625,7 +625,11 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
     gt_masks = [np.asarray(f.truth.contact_mask(mesh), dtype=bool) for f in traj.frames]
     config = estimator_config(task.config)
     records: list[FrameMetrics] = []
-    fields: dict[str, Any] = {"vertices": mesh.vertices, "triangles": mesh.triangles}
+    fields: dict[str, Any] = {
+        "vertices": mesh.vertices,
+        "triangles": mesh.triangles,
+        "boundary": mesh.boundary,
+    }
     for name in task.estimators:
         est = build_estimator(name, mesh, traj, config, task.flow_method)
         for i, frame in enumerate(traj.frames):
@@ -710,11 +714,14 @@ def save_figures(
         i_best = max(frames, key=lambda i: int(next(iter(frames[i].values()))["gt_contact"].sum()))
         per = frames[i_best]
         names = [e for e in estimators if e in per]
-        fig, axes = plt.subplots(2, len(names), figsize=(5 * len(names), 7.5), squeeze=False)
+        T = np.asarray(r.fields["triangles"])
+        interior = np.ones(len(V), bool)
+        interior[np.asarray(r.fields.get("boundary", []), dtype=int)] = False
+        fig = plt.figure(figsize=(5.2 * len(names), 8.5))
         for j, name in enumerate(names):
             d = per[name]
             est, gt = d["contact"], d["gt_contact"]
-            ax = axes[0, j]
+            ax = fig.add_subplot(2, len(names), j + 1)
             ax.scatter(V[:, 0] * 1e3, V[:, 1] * 1e3, s=4, c="0.85")
             for mask, col, lab in (
                 (est & gt, "tab:green", "both"),
@@ -723,26 +730,38 @@ def save_figures(
             ):
                 ax.scatter(V[mask, 0] * 1e3, V[mask, 1] * 1e3, s=14, c=col, label=lab)
             ax.set_aspect("equal")
-            ax.set_title(f"{name}: contact patch, frame {i_best}, IoU {contact_iou(est, gt):.2f}")
+            ax.set_title(f"{name}: contact, frame {i_best}, IoU {contact_iou(est, gt):.2f}")
             ax.set_xlabel("x (mm)")
             ax.set_ylabel("y (mm)")
             ax.legend(fontsize=7, loc="upper right")
-            ax = axes[1, j]
-            F = d["node_forces"]
-            ax.scatter(V[:, 0] * 1e3, V[:, 1] * 1e3, s=3, c="0.8")
-            q = ax.quiver(
-                V[:, 0] * 1e3,
-                V[:, 1] * 1e3,
-                F[:, 0],
-                F[:, 1],
-                F[:, 2],
-                cmap="coolwarm",
-                angles="xy",
+            # Force field: arrows on the mesh (interior nodes; the rim carries the base's
+            # reaction), longest arrow drawn 15 mm long.
+            ax3 = fig.add_subplot(2, len(names), len(names) + j + 1, projection="3d")
+            F = np.asarray(d["node_forces"])
+            ax3.plot_trisurf(
+                V[:, 0] * 1e3, V[:, 1] * 1e3, V[:, 2] * 1e3, triangles=T, color="0.8", alpha=0.3
             )
-            fig.colorbar(q, ax=ax, label="f_z (N)")
-            ax.set_aspect("equal")
-            ax.set_title(f"{name}: node forces (arrows x-y, colour z)")
-            ax.set_xlabel("x (mm)")
+            Fi = np.where(interior[:, None], F, 0.0)
+            fmax = float(np.linalg.norm(Fi, axis=1).max()) or 1.0
+            sc = 15.0 / fmax
+            ax3.quiver(
+                V[interior, 0] * 1e3,
+                V[interior, 1] * 1e3,
+                V[interior, 2] * 1e3,
+                Fi[interior, 0] * sc,
+                Fi[interior, 1] * sc,
+                Fi[interior, 2] * sc,
+                color=np.where(est[interior], "tab:red", "tab:gray"),
+                linewidth=0.8,
+                arrow_length_ratio=0.25,
+            )
+            ax3.set_title(f"{name}: node forces (max {fmax:.2f} N; red = contact)", fontsize=9)
+            ax3.set_xlabel("x (mm)")
+            ax3.set_ylabel("y (mm)")
+            ax3.set_zlabel("z (mm)")
+            ax3.view_init(elev=35, azim=-60)
+            ext = np.ptp(V, axis=0) * 1e3
+            ax3.set_box_aspect((ext[0], ext[1], ext[2] + 15.0))
         fig.tight_layout()
         p = out / f"contact_{g}.png"
         fig.savefig(p, dpi=90)
