@@ -187,3 +187,62 @@ def test_fanout_dask_local_cluster_matches_processes():
     ) as cluster:
         got = run_tasks(_square, tasks, scheduler=cluster.scheduler_address)
     assert got == expected
+
+
+def test_eval_command_end_to_end_on_a_tiny_dataset(tmp_path):
+    """Simulate one short trajectory per indenter pair, run both estimators, write JSON/figures."""
+    import json
+
+    from bubble_rt.cli import main
+
+    out = tmp_path / "eval.json"
+    figs = tmp_path / "figs"
+    rc = main(
+        [
+            "eval",
+            "--geometries",
+            "round,point",
+            "--trajectories",
+            "1",
+            "--frames",
+            "6",
+            "--mesh",
+            "coarse",
+            "--workers",
+            "1",
+            "--no-progress",
+            "--json",
+            str(out),
+            "--figures",
+            str(figs),
+        ]
+    )
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    for g in ("round", "point"):
+        for e in ("fem", "frictionless"):
+            st = doc["geometries"][g][e]
+            assert {"miou", "force_err_n", "normal_err_n", "shear_err_n"} <= set(st)
+            assert st["n_frames"] == 6
+            assert st["force_err_n"] is not None and st["force_err_n"] >= 0
+    for e in ("fem", "frictionless"):
+        assert {"miou", "force_err_n", "normal_err_n", "shear_err_n"} <= set(doc["average"][e])
+    assert doc["throughput"]["frames"] == 12
+    assert (figs / "net_force_round.png").stat().st_size > 0
+    assert (figs / "contact_point.png").stat().st_size > 0
+
+
+def test_eval_trajectory_same_on_dask_as_inline():
+    distributed = pytest.importorskip("distributed")
+    from bubble_rt.evaluation import evaluate_trajectory, make_tasks
+
+    tasks = make_tasks(["round"], 1, 4, mesh="coarse", estimators=("fem",))
+    inline = run_tasks(evaluate_trajectory, tasks)
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        remote = run_tasks(evaluate_trajectory, tasks, scheduler=cluster.scheduler_address)
+    a = [r.force_err_n for r in inline[0].records]
+    b = [r.force_err_n for r in remote[0].records]
+    assert len(a) == 4
+    assert b == pytest.approx(a, abs=1e-9)
