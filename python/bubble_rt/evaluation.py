@@ -804,7 +804,7 @@ def run_eval(
     return list(results), summary
 
 
-QUICK_FRAMES = 10
+QUICK_FRAMES = 8
 
 
 # ---------------------------------------------------------------------------------- recordings

@@ -12,8 +12,10 @@ HELP = "evaluate force/contact accuracy on simulated trajectories (or a real rec
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="small dataset (under 5 minutes)")
     p.add_argument("--full", action="store_true", help="the paper's size: 34 x 100 per indenter")
-    p.add_argument("--trajectories", type=int, default=None, help="trajectories per indenter")
-    p.add_argument("--frames", type=int, default=None, help="frames per trajectory")
+    p.add_argument(
+        "--trajectories", type=int, default=None, help="per indenter (default 4; quick 2)"
+    )
+    p.add_argument("--frames", type=int, default=None, help="per trajectory (default 20; quick 8)")
     p.add_argument("--geometries", default="round,point,line,square,split")
     p.add_argument("--estimators", default="fem,frictionless")
     p.add_argument("--mesh", default="medium", help="estimator mesh: coarse|medium|fine|<nodes>")
@@ -54,9 +56,10 @@ def run(args: argparse.Namespace) -> int:
     if args.full:
         traj, frames = 34, 100
     elif args.quick:
-        traj, frames = 1, ev.QUICK_FRAMES
+        # one light and one heavy touch per indenter (the dataset alternates them)
+        traj, frames = 2, ev.QUICK_FRAMES
     else:
-        traj, frames = 3, 24
+        traj, frames = 4, 20
     traj = args.trajectories or traj
     frames = args.frames or frames
     geoms = [g.strip() for g in args.geometries.split(",") if g.strip()]
