@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -246,3 +247,20 @@ def test_eval_trajectory_same_on_dask_as_inline():
     b = [r.force_err_n for r in remote[0].records]
     assert len(a) == 4
     assert b == pytest.approx(a, abs=1e-9)
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="shared real data not present")
+def test_recording_eval_on_untouched_real_frames():
+    from bubble_rt.evaluation import evaluate_recording, recording_table
+
+    res = evaluate_recording(DATA, estimators=("fem",), n_reference=5, max_frames=12)
+    assert res["frames"] == 7
+    assert res["touched_frames"] == 0
+    st = res["estimators"]["fem"]
+    # untouched sensor: the product reports (almost) no force and no contact
+    assert st["force_mag_err_n"] < 1.5
+    assert st["false_contact_rate"] is not None and st["false_contact_rate"] <= 0.5
+    assert "| fem |" in recording_table(res)

@@ -524,7 +524,11 @@ def plot_sweep(result: dict[str, Any], path: str | Path) -> Path:
     t = np.array([p["time_ms"] for p in pts])
     e = np.array([p["force_err_n"] for p in pts])
     m = np.array([p["miou"] if p["miou"] is not None else np.nan for p in pts], float)
-    sc = ax.scatter(t, e, c=np.nan_to_num(m, nan=0.0), cmap="viridis", s=40, vmin=0, vmax=1)
+    lo = float(np.nanmin(m)) if np.isfinite(m).any() else 0.0
+    hi = float(np.nanmax(m)) if np.isfinite(m).any() else 1.0
+    sc = ax.scatter(
+        t, e, c=np.nan_to_num(m, nan=lo), cmap="viridis", s=40, vmin=lo, vmax=max(hi, lo + 1e-3)
+    )
     fig.colorbar(sc, ax=ax, label="contact mIoU")
     front = sorted((p for p in pts if p.get("pareto")), key=lambda p: p["time_ms"])
     if front:

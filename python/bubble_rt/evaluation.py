@@ -822,9 +822,9 @@ def evaluate_recording(
 
     The wrench is in the arm's frame, so only magnitudes are compared:
     ``| |f_net| - |w_f - bias| |`` with ``bias`` the mean wrench force over the first
-    ``n_reference`` frames (which are also the untouched reference). A frame counts as touched
-    when ``|w_f - bias| > force_threshold`` (N); the estimate detects contact when it marks any
-    contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
+    ``n_reference`` frames (which are also the untouched reference and are not scored). A frame
+    counts as touched when ``|w_f - bias| > force_threshold`` (N); the estimate detects contact
+    when it marks any contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
     false-contact rate on untouched frames, per estimator.
     """
     from bubble_rt.deformation import Reference
@@ -847,12 +847,13 @@ def evaluate_recording(
         raise ValueError(f"{path}: recording has frames without a wrench")
     W = np.asarray(wrenches, dtype=float)[:, :3]
     bias = W[:n_reference].mean(axis=0)
-    f_gt = np.linalg.norm(W - bias, axis=1)
+    scored = frames[n_reference:] if len(frames) > n_reference else frames
+    f_gt = np.linalg.norm(W - bias, axis=1)[len(frames) - len(scored) :]
     touched = f_gt > force_threshold
     config = estimator_config(overrides or {})
     out: dict[str, Any] = {
         "recording": str(path),
-        "frames": len(frames),
+        "frames": len(scored),
         "reference_frames": n_reference,
         "force_threshold_n": force_threshold,
         "touched_frames": int(touched.sum()),
@@ -862,7 +863,7 @@ def evaluate_recording(
     for name in estimators:
         est = build_estimator(name, fitted, traj, config)
         mags, det, ms = [], [], []
-        for fr in frames:
+        for fr in scored:
             t0 = time.perf_counter()
             e = est.process(fr)
             ms.append(1e3 * (time.perf_counter() - t0))
@@ -891,8 +892,8 @@ def evaluate_recording(
 def recording_table(res: dict[str, Any]) -> str:
     """Markdown table for :func:`evaluate_recording`."""
     cols = [
-        ("|f| err (N)", "force_mag_err_n"),
-        ("|f| err touched (N)", "force_mag_err_touched_n"),
+        ("force-magnitude err (N)", "force_mag_err_n"),
+        ("err on touched (N)", "force_mag_err_touched_n"),
         ("accuracy", "accuracy"),
         ("precision", "precision"),
         ("recall", "recall"),
@@ -901,7 +902,8 @@ def recording_table(res: dict[str, Any]) -> str:
     ]
     lines = [
         f"recording {res['recording']}: {res['frames']} frames, {res['touched_frames']} touched "
-        f"(|wrench - bias| > {res['force_threshold_n']} N)",
+        f"(wrench force minus bias above {res['force_threshold_n']} N; "
+        f"the first {res['reference_frames']} frames are the reference and are not scored)",
         "",
         "| estimator | " + " | ".join(c[0] for c in cols) + " |",
         "|" + "---|" * (len(cols) + 1),
