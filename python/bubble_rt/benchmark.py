@@ -51,7 +51,13 @@ class BenchSettings:
     seed: int = 424_242
     meshes: tuple[str, ...] = MESHES
     #: first entry is the default setting; "default" means FlowSettings().method
-    flow_methods: tuple[str, ...] = ("default", "dis_ultrafast", "dis_fast", "farneback")
+    flow_methods: tuple[str, ...] = (
+        "default",
+        "dis_ultrafast",
+        "dis_fast",
+        "dis_medium",
+        "farneback",
+    )
     reference_frames: int = 6
     reference_meshes: tuple[str, ...] = MESHES
     sweep: bool = True
