@@ -676,9 +676,17 @@ def save_figures(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
+    # Per indenter, the trajectory with fields and the largest true force (a heavy touch).
     by_geom: dict[str, TrajectoryResult] = {}
+
+    def peak(r: TrajectoryResult) -> float:
+        return max((float(np.linalg.norm(x.f_gt)) for x in r.records), default=0.0)
+
     for r in results:
-        by_geom.setdefault(r.task.geometry, r)
+        cur = by_geom.get(r.task.geometry)
+        has = bool(r.fields.get("frames"))
+        if cur is None or (has, peak(r)) > (bool(cur.fields.get("frames")), peak(cur)):
+            by_geom[r.task.geometry] = r
     for g, r in by_geom.items():
         # net force vs ground truth over the trajectory
         fig, axes = plt.subplots(1, 4, figsize=(14, 3.2), sharex=True)

@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
         config=tuple(sorted(overrides.items())),
     )
     if args.figures:
-        # per-node fields only for each indenter's first trajectory (the figures use those)
+        # per-node fields only for each indenter's first light and heavy trajectories
         tasks = [
-            replace(t, keep_fields=tuple(range(frames))) if t.trajectory == 0 else t for t in tasks
+            replace(t, keep_fields=tuple(range(frames))) if t.trajectory < 2 else t for t in tasks
         ]
     results, summary = ev.run_eval(
         tasks, workers=args.workers, scheduler=args.scheduler, progress=not args.no_progress
