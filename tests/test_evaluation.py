@@ -1,0 +1,266 @@
+"""Evaluation metrics on hand-made cases, aggregation, and the fan-out modes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bubble_rt.evaluation import (
+    FanOut,
+    aggregate,
+    contact_iou,
+    contact_normal,
+    frame_metrics,
+    lumped_areas,
+    markdown_table,
+    run_tasks,
+    split_force_error,
+    summarize,
+    vertex_normals,
+)
+from bubble_rt.mesh import Mesh
+
+
+def _square(x: float) -> float:
+    return x * x
+
+
+def test_iou_partial_overlap():
+    est = np.array([1, 1, 0, 0], bool)
+    gt = np.array([0, 1, 1, 0], bool)
+    assert contact_iou(est, gt) == pytest.approx(1 / 3)
+
+
+def test_iou_both_empty_is_undefined():
+    z = np.zeros(5, bool)
+    assert math.isnan(contact_iou(z, z))
+
+
+def test_iou_estimate_only_scores_zero():
+    assert contact_iou(np.array([1, 0, 0], bool), np.zeros(3, bool)) == 0.0
+
+
+def test_iou_truth_only_scores_zero():
+    assert contact_iou(np.zeros(3, bool), np.array([0, 1, 1], bool)) == 0.0
+
+
+def test_iou_identical_is_one():
+    m = np.array([0, 1, 1, 0, 1], bool)
+    assert contact_iou(m, m) == 1.0
+
+
+def test_iou_shape_mismatch_raises():
+    with pytest.raises(ValueError, match="shape"):
+        contact_iou(np.zeros(3, bool), np.zeros(4, bool))
+
+
+def test_force_error_split_pure_normal():
+    total, normal, shear = split_force_error(
+        np.array([0.0, 0.0, -3.0]), np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, -1.0])
+    )
+    assert (total, normal, shear) == pytest.approx((2.0, 2.0, 0.0))
+
+
+def test_force_error_split_pure_shear():
+    total, normal, shear = split_force_error(
+        np.array([1.0, 0.0, -2.0]), np.array([0.0, 0.0, -2.0]), np.array([0.0, 0.0, -1.0])
+    )
+    assert (total, normal, shear) == pytest.approx((1.0, 0.0, 1.0))
+
+
+def test_force_error_split_is_pythagorean_on_tilted_normal():
+    n = np.array([1.0, 0.0, -1.0]) / math.sqrt(2)
+    total, normal, shear = split_force_error(np.array([3.0, 4.0, 0.0]), np.zeros(3), n)
+    assert total == pytest.approx(5.0)
+    assert normal == pytest.approx(3.0 / math.sqrt(2))
+    assert normal**2 + shear**2 == pytest.approx(total**2)
+
+
+def test_contact_normal_uses_truth_then_estimate_then_interior():
+    normals = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    areas = np.ones(3)
+    gt = np.array([True, False, False])
+    est = np.array([False, True, False])
+    assert contact_normal(normals, areas, gt, est) == pytest.approx([0, 0, -1])
+    assert contact_normal(normals, areas, np.zeros(3, bool), est) == pytest.approx([-1, 0, 0])
+    interior = np.array([False, False, True])
+    got = contact_normal(normals, areas, np.zeros(3, bool), np.zeros(3, bool), interior)
+    assert got == pytest.approx([0, -1, 0])
+
+
+def test_dome_mean_normal_points_down():
+    mesh = Mesh.preset("coarse")
+    n = vertex_normals(mesh.vertices, mesh.triangles)
+    a = lumped_areas(mesh.vertices, mesh.triangles)
+    c = contact_normal(n, a, np.zeros(mesh.n_nodes, bool))
+    assert c[2] < -0.9
+
+
+def test_lumped_areas_sum_to_surface_area():
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    t = np.array([[0, 1, 2], [0, 2, 3]])
+    a = lumped_areas(v, t)
+    assert a.sum() == pytest.approx(1.0)
+    assert a[0] == pytest.approx(1 / 3)
+
+
+def _rec(geometry, estimator, f_est, f_gt, est, gt, **kw):
+    n = len(gt)
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    return frame_metrics(
+        geometry=geometry,
+        estimator=estimator,
+        trajectory=0,
+        frame=kw.get("frame", 0),
+        f_est=np.asarray(f_est, float),
+        f_gt=np.asarray(f_gt, float),
+        est_contact=np.asarray(est, bool),
+        gt_contact=np.asarray(gt, bool),
+        normals=normals,
+        areas=np.ones(n),
+    )
+
+
+def test_aggregate_light_touch_and_false_contacts():
+    recs = [
+        # light touch detected
+        _rec("round", "fem", [0, 0, -1], [0, 0, -1.0], [1, 0, 0], [1, 1, 0]),
+        # light touch missed
+        _rec("round", "fem", [0, 0, 0], [0, 0, -0.5], [0, 0, 0], [0, 1, 0]),
+        # firm touch, not light
+        _rec("round", "fem", [0, 0, -4], [0, 0, -5.0], [0, 1, 1], [0, 1, 1]),
+        # untouched, false contact on two nodes
+        _rec("round", "fem", [0, 0, -0.2], [0, 0, 0], [1, 1, 0], [0, 0, 0]),
+        # untouched, quiet (undefined IoU, left out of mIoU)
+        _rec("round", "fem", [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]),
+    ]
+    st = aggregate(recs)
+    assert st["light_touch_rate"] == pytest.approx(0.5)
+    assert st["false_contact_rate"] == pytest.approx(0.5)
+    assert st["false_nodes"] == pytest.approx(1.0)
+    # IoUs 0.5, 0, 1, 0 -> mean 0.375 (the all-empty frame is excluded)
+    assert st["miou"] == pytest.approx(0.375)
+    assert st["force_err_n"] == pytest.approx((0 + 0.5 + 1 + 0.2 + 0) / 5)
+    assert st["force_err_contact_n"] == pytest.approx(1.5 / 3)
+
+
+def test_aggregate_without_light_touches_is_nan():
+    st = aggregate([_rec("round", "fem", [0, 0, -4], [0, 0, -5.0], [1], [1])])
+    assert math.isnan(st["light_touch_rate"])
+    assert math.isnan(st["false_contact_rate"])
+
+
+def test_summarize_keys_and_unweighted_average():
+    recs = [
+        _rec("round", "fem", [0, 0, -2], [0, 0, -1], [1, 0], [1, 0]),
+        _rec("point", "fem", [0, 0, -4], [0, 0, -1], [1, 0], [1, 1]),
+        _rec("point", "fem", [0, 0, -4], [0, 0, -1], [1, 0], [1, 1], frame=1),
+        _rec("round", "frictionless", [0, 0, -1], [0, 0, -1], [1, 0], [1, 0]),
+    ]
+    s = summarize(recs)
+    assert list(s["geometries"]) == ["round", "point"]
+    for key in ("miou", "force_err_n", "normal_err_n", "shear_err_n"):
+        assert key in s["geometries"]["round"]["fem"]
+        assert key in s["average"]["fem"]
+    assert s["average"]["fem"]["force_err_n"] == pytest.approx((1 + 3) / 2)
+    assert s["average"]["fem"]["miou"] == pytest.approx((1 + 0.5) / 2)
+    assert "frictionless" not in s["geometries"]["point"]
+    table = markdown_table(s)
+    assert "| average |" in table
+    assert "fem mIoU" in table and "frictionless force err (N)" in table
+
+
+def test_fanout_processes_match_inline():
+    tasks = [1.0, 2.0, 3.0, 4.0, 5.0]
+    with FanOut(workers=2) as fan:
+        assert fan.map(_square, tasks) == [1.0, 4.0, 9.0, 16.0, 25.0]
+    assert run_tasks(_square, tasks, workers=1) == [1.0, 4.0, 9.0, 16.0, 25.0]
+
+
+def test_fanout_dask_local_cluster_matches_processes():
+    distributed = pytest.importorskip("distributed")
+    tasks = [0.5 * k for k in range(7)]
+    expected = run_tasks(_square, tasks, workers=2)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        got = run_tasks(_square, tasks, scheduler=cluster.scheduler_address)
+    assert got == expected
+
+
+def test_eval_command_end_to_end_on_a_tiny_dataset(tmp_path):
+    """Simulate one short trajectory per indenter pair, run both estimators, write JSON/figures."""
+    import json
+
+    from bubble_rt.cli import main
+
+    out = tmp_path / "eval.json"
+    figs = tmp_path / "figs"
+    rc = main(
+        [
+            "eval",
+            "--geometries",
+            "round,point",
+            "--trajectories",
+            "1",
+            "--frames",
+            "6",
+            "--mesh",
+            "coarse",
+            "--workers",
+            "1",
+            "--no-progress",
+            "--json",
+            str(out),
+            "--figures",
+            str(figs),
+        ]
+    )
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    for g in ("round", "point"):
+        for e in ("fem", "frictionless"):
+            st = doc["geometries"][g][e]
+            assert {"miou", "force_err_n", "normal_err_n", "shear_err_n"} <= set(st)
+            assert st["n_frames"] == 6
+            assert st["force_err_n"] is not None and st["force_err_n"] >= 0
+    for e in ("fem", "frictionless"):
+        assert {"miou", "force_err_n", "normal_err_n", "shear_err_n"} <= set(doc["average"][e])
+    assert doc["throughput"]["frames"] == 12
+    assert (figs / "net_force_round.png").stat().st_size > 0
+    assert (figs / "contact_point.png").stat().st_size > 0
+
+
+def test_eval_trajectory_same_on_dask_as_inline():
+    distributed = pytest.importorskip("distributed")
+    from bubble_rt.evaluation import evaluate_trajectory, make_tasks
+
+    tasks = make_tasks(["round"], 1, 4, mesh="coarse", estimators=("fem",))
+    inline = run_tasks(evaluate_trajectory, tasks)
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        remote = run_tasks(evaluate_trajectory, tasks, scheduler=cluster.scheduler_address)
+    a = [r.force_err_n for r in inline[0].records]
+    b = [r.force_err_n for r in remote[0].records]
+    assert len(a) == 4
+    assert b == pytest.approx(a, abs=1e-9)
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="shared real data not present")
+def test_recording_eval_on_untouched_real_frames():
+    from bubble_rt.evaluation import evaluate_recording, recording_table
+
+    res = evaluate_recording(DATA, estimators=("fem",), n_reference=5, max_frames=12)
+    assert res["frames"] == 7
+    assert res["touched_frames"] == 0
+    st = res["estimators"]["fem"]
+    # untouched sensor: the product reports (almost) no force and no contact
+    assert st["force_mag_err_n"] < 1.5
+    assert st["false_contact_rate"] is not None and st["false_contact_rate"] <= 0.5
+    assert "| fem |" in recording_table(res)
