@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
+import tomllib
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import tomllib
 from bubble_rt.calibration import (
     DEFAULTS,
     CalibFrame,

@@ -122,6 +122,7 @@ def test_with_overrides_skips_none():
 
 def test_config_dump_command_prints_defaults(capsys):
     import tomllib
+
     from bubble_rt.cli import main
 
     assert main(["config", "dump"]) == 0

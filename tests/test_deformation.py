@@ -317,9 +317,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
 
 
 def test_identical_frames_give_zero_force_and_no_contact(scene):
-    ForceEstimator = pytest.importorskip(
-        "bubble_rt.estimator"
-    ).ForceEstimator  # TEMP until core is on main
+    from bubble_rt.estimator import ForceEstimator
 
     cam, depth, img, ref, mesh = scene
     est = ForceEstimator(mesh)
@@ -333,9 +331,7 @@ def test_identical_frames_give_zero_force_and_no_contact(scene):
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_real_untouched_frames_give_no_contact_and_small_force():
-    ForceEstimator = pytest.importorskip(
-        "bubble_rt.estimator"
-    ).ForceEstimator  # TEMP until core is on main
+    from bubble_rt.estimator import ForceEstimator
     from bubble_rt.recordings import open_recording
 
     rec = open_recording(DATA)

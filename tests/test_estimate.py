@@ -41,7 +41,6 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
 
 
 def test_estimate_command_on_png_fixture(tmp_path):
-    pytest.importorskip("bubble_rt.estimator")  # TEMP until core is on main
     cam = Camera.d405()
     depth = dome_depth(cam)
     img = texture(cam.height, cam.width)
@@ -67,7 +66,6 @@ def test_estimate_command_on_png_fixture(tmp_path):
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_estimate_command_real_recording(tmp_path):
-    pytest.importorskip("bubble_rt.estimator")  # TEMP until core is on main
     out = tmp_path / "real.json"
     args = [str(DATA), "--reference-frames", "0-4", "--mesh", "medium", "--frames", "5-19"]
     assert main(["estimate", *args, "--json", str(out), "--no-progress"]) == 0

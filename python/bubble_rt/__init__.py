@@ -26,6 +26,20 @@ _EXPORTS = {
     "EstimatorConfig": "estimator",
     "ForceEstimator": "estimator",
     "Estimate": "estimator",
+    "make_estimator": "estimator",
+    "SolverResult": "solver",
+    "Reference": "deformation",
+    "DeformationTracker": "deformation",
+    "FlowSettings": "deformation",
+    "fit_mesh": "fitting",
+    "open_recording": "recordings",
+    "FrictionlessEstimator": "baseline",
+    "FrictionlessSettings": "baseline",
+    "ReferencePipeline": "reference",
+    "GroupLassoProblem": "reference",
+    "DaemonConfig": "config",
+    "Subscriber": "client",
+    "Controller": "client",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

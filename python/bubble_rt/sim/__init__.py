@@ -23,6 +23,14 @@ _EXPORTS = {
     "Box": "indenters",
     "Union": "indenters",
     "Indenter": "indenters",
+    "Simulator": "simulator",
+    "PhysicsRun": "simulator",
+    "load_scene": "scene",
+    "Scene": "scene",
+    "SceneError": "scene",
+    "GroundTruth": "truth",
+    "dataset_scenes": "dataset",
+    "DatasetSettings": "dataset",
 }
 
 __all__ = sorted(_EXPORTS)
