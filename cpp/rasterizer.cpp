@@ -41,7 +41,7 @@ inline void sample_rgb(const TextureView& tex, double s, double t, double out[3]
 RenderOutput rasterize(const Eigen::Ref<const RowMatrixX3d>& vertices,
                        const Eigen::Ref<const RowMatrixX3i>& triangles,
                        const Eigen::Ref<const RowMatrixX2d>& texcoords, const TextureView& texture,
-                       const PinholeIntrinsics& cam, const RenderOptions& options) {
+                       const RasterCamera& cam, const RenderOptions& options) {
   const Eigen::Index M = vertices.rows();
   require(cam.width > 0 && cam.height > 0, "rasterize: image size must be positive");
   require(cam.fx > 0 && cam.fy > 0, "rasterize: focal lengths must be positive");

@@ -12,7 +12,7 @@ using RowMatrixX3d = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
 using RowMatrixX3i = Eigen::Matrix<int32_t, Eigen::Dynamic, 3, Eigen::RowMajor>;
 using RowMatrixX2d = Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>;
 
-struct PinholeIntrinsics {
+struct RasterCamera {
   double fx = 0, fy = 0, cx = 0, cy = 0;
   int width = 0, height = 0;
 };
@@ -44,6 +44,6 @@ struct RenderOutput {
 RenderOutput rasterize(const Eigen::Ref<const RowMatrixX3d>& vertices,
                        const Eigen::Ref<const RowMatrixX3i>& triangles,
                        const Eigen::Ref<const RowMatrixX2d>& texcoords, const TextureView& texture,
-                       const PinholeIntrinsics& camera, const RenderOptions& options);
+                       const RasterCamera& camera, const RenderOptions& options);
 
 }  // namespace bubble

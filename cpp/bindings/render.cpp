@@ -33,7 +33,7 @@ py::tuple render(const DArr& vertices, const IArr& triangles, const DArr& texcoo
   tex.height = static_cast<int>(texture.shape(0));
   tex.width = static_cast<int>(texture.ndim() > 1 ? texture.shape(1) : 0);
   tex.channels = texture.ndim() == 3 ? static_cast<int>(texture.shape(2)) : 1;
-  bubble::PinholeIntrinsics cam{fx, fy, cx, cy, width, height};
+  bubble::RasterCamera cam{fx, fy, cx, cy, width, height};
   bubble::RenderOptions opt;
   opt.rgb = rgb;
   opt.shading = shading;

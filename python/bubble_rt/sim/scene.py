@@ -11,16 +11,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
+import tomllib
 from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 #: Every effect a scene may name, with its parameters and their defaults.
 EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
