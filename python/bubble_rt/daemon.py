@@ -110,7 +110,7 @@ class EstimatorProcessor:
         from bubble_rt.solver import SolverSettings
 
         sc = self.config.solver
-        wanted = {"time_limit": sc.time_limit_ms / 1e3}
+        wanted: dict[str, Any] = {"time_limit": sc.time_limit_ms / 1e3}
         names = {f.name for f in dataclasses.fields(SolverSettings)}
         return SolverSettings(**{k: v for k, v in wanted.items() if k in names})
 

@@ -474,7 +474,9 @@ def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) 
     ov = dict(overrides)
     if "E" in ov:
         cfg = replace(cfg, material=replace(cfg.material, E=float(ov.pop("E"))))
-    known = {k: float(v) for k, v in ov.items() if k in ("k_f", "k_u", "k_const", "k_linear")}
+    known: dict[str, Any] = {
+        k: float(v) for k, v in ov.items() if k in ("k_f", "k_u", "k_const", "k_linear")
+    }
     return replace(cfg, **known) if known else cfg
 
 
