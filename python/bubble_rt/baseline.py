@@ -29,18 +29,19 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from bubble_rt.estimator import Estimate
 from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
+from bubble_rt.solver import SolverInfo
 
 __all__ = [
     "FrictionlessSettings",
-    "FrictionlessInfo",
     "FrictionlessEstimator",
     "cotangent_laplacian",
     "fit_dome",
@@ -97,66 +98,6 @@ class FrictionlessSettings:
     polish: bool = True
     scaling: int = 10
     time_limit_s: float = 0.0
-
-
-@dataclass
-class FrictionlessInfo:
-    """Solver report (same fields as ``bubble_rt.solver.SolverInfo``)."""
-
-    status: str
-    iterations: int
-    primal_residual: float
-    dual_residual: float
-    objective: float
-    setup_time_ms: float
-    solve_time_ms: float
-
-
-@dataclass
-class _FallbackEstimate:
-    """Used only while ``bubble_rt.estimator`` is absent; same fields as its ``Estimate``."""
-
-    node_forces: NDArray[np.float64]
-    contact_pressure: NDArray[np.float64]
-    normal_pressure: NDArray[np.float64]
-    contact: NDArray[np.bool_]
-    net_force: NDArray[np.float64]
-    displacements: NDArray[np.float64]
-    info: Any
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    valid_node_fraction: float = 1.0
-
-
-def _estimate_type() -> Any:
-    try:
-        from bubble_rt.estimator import Estimate
-
-        return Estimate
-    except (ImportError, OSError):  # core not built / not merged yet
-        return _FallbackEstimate
-
-
-def _make_estimate(cls: Any, **fields: Any) -> Any:
-    try:
-        return cls(**fields)
-    except TypeError:  # the core's Estimate changed shape: still return every field
-        return _FallbackEstimate(**fields)
-
-
-def _info_type() -> Any:
-    try:
-        from bubble_rt.solver import SolverInfo
-
-        return SolverInfo
-    except (ImportError, OSError):
-        return FrictionlessInfo
-
-
-def _make_info(cls: Any, **fields: Any) -> Any:
-    try:
-        return cls(**fields)
-    except TypeError:  # the core's SolverInfo changed shape
-        return FrictionlessInfo(**fields)
 
 
 _STATUS = {
@@ -407,8 +348,6 @@ class FrictionlessEstimator:
             warm_starting=True,
             verbose=False,
         )
-        self._Estimate = _estimate_type()
-        self._Info = _info_type()
         self.setup_time_ms = 1e3 * (time.perf_counter() - t_setup)
         self.last_info: Any = None
 
@@ -477,9 +416,8 @@ class FrictionlessEstimator:
         seen = np.zeros(self.n, dtype=bool)
         seen[self._ray_nodes[w > 0].ravel()] = True
         t3 = time.perf_counter()
-        info = _make_info(
-            self._Info,
-            status=status,
+        info = SolverInfo(
+            status=status,  # type: ignore[arg-type]  # an unmapped OSQP status passes through verbatim
             iterations=int(res.info.iter),
             primal_residual=float(res.info.prim_res),
             dual_residual=float(res.info.dual_res),
@@ -489,8 +427,7 @@ class FrictionlessEstimator:
         )
         self.last_info = info
         self.last_pv = float(x[2 * ni]) * self.pressure_scale
-        return _make_estimate(
-            self._Estimate,
+        return Estimate(
             node_forces=F,
             contact_pressure=contact_pressure,
             normal_pressure=p,
