@@ -104,17 +104,28 @@ void fill_depth(const cv::Mat& depth, cv::Mat& filled, cv::Mat& level, int smoot
         if (w[x] <= 0.f) d[x] = upsample(coarse, x, y);
     }
   }
+  // Provenance: the first level at which a pixel's block held measured depth, propagated from
+  // the coarsest level down (one lookup per pixel instead of a search up the pyramid).
+  const int n_levels = static_cast<int>(pyr.size());
+  cv::Mat above;
+  for (int k = n_levels - 1; k >= 1; --k) {
+    const cv::Mat& w = pyr[k].w;
+    cv::Mat here(w.size(), CV_8U);
+    for (int y = 0; y < w.rows; ++y) {
+      const float* wr = w.ptr<float>(y);
+      uint8_t* hr = here.ptr<uint8_t>(y);
+      const uint8_t* ar = above.empty() ? nullptr : above.ptr<uint8_t>(y >> 1);
+      for (int x = 0; x < w.cols; ++x)
+        hr[x] = wr[x] > 0.f ? static_cast<uint8_t>(std::min(k, 254)) : (ar ? ar[x >> 1] : 254);
+    }
+    above = here;
+  }
   float* d0 = pyr[0].d.ptr<float>();
   uint8_t* l0 = level.ptr<uint8_t>();
-  const int n_levels = static_cast<int>(pyr.size());
   for (const int idx : holes) {
     const int y = idx / cols, x = idx - y * cols;
     d0[idx] = upsample(pyr[1].d, x, y);
-    // Provenance: the first level at which this pixel's block held measured depth.
-    int k = 1;
-    for (; k < n_levels; ++k)
-      if (pyr[k].w.at<float>(y >> k, x >> k) > 0.f) break;
-    l0[idx] = static_cast<uint8_t>(std::min(k, 254));
+    l0[idx] = above.at<uint8_t>(y >> 1, x >> 1);
   }
   filled = pyr[0].d;
   // Harmonic refinement inside holes (measured pixels fixed): Gauss-Seidel sweeps, only where

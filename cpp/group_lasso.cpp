@@ -18,6 +18,11 @@ double ms_since(Clock::time_point t0) {
 // rho moves on a grid of quarter decades so that factorizations can be cached and reused.
 constexpr double kRhoGridPerDecade = 4.0;
 constexpr int kMaxCachedFactors = 12;
+// Before any solution exists, the solution's force scale is guessed from the raw nodal forces
+// (measured: about 1e-3 of them on untouched frames, 1e-1 in firm contact); later it is
+// floored so that an all-zero solution cannot send rho to infinity.
+constexpr double kFirstForceRatio = 3e-3;
+constexpr double kMinForceRatio = 1e-4;
 
 // Type-II Anderson acceleration of a fixed-point map u -> G(u) (Walker & Ni), with a small
 // Tikhonov term and a restart whenever the fixed-point residual jumps.
@@ -202,6 +207,7 @@ void GroupLassoSolver::setup() {
   for (int i = 0; i < n_; ++i) wh_(i) = s_ * w_(i) / e(i);
   factors_.clear();
   rho_set_ = false;
+  force_scale_ = 0;
   fresh_ = false;
   if (have_data_) {
     RowMatrixX3d U = U_;
@@ -318,10 +324,15 @@ SolverResult GroupLassoSolver::solve() {
   Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), tmp(m);
   Eigen::VectorXd ya(m), yb(m), ybest(m), dy(m), atya(nfd), atyb(nfd), atybest(nfd), da(nfd);
   bool have_best = false;
-  // rho from the data: the ratio of the dual scale (the weights) to the force scale of the
-  // frame (rms nodal force at dU = 0). Refactor only when it moves by more than the tolerance.
+  // rho from the data: the ratio of the dual scale (the weights) to the primal scale, the
+  // nodal forces of the solution. The previous frame's solution is the best predictor of this
+  // frame's (noise-only frames leave forces ~1e-3 of the raw nodal forces and want a large
+  // rho; contacts leave large forces and want a small one). Refactor only when it moves by
+  // more than the tolerance.
+  const double fb = std::sqrt(bh_.squaredNorm() / n_);
   {
-    const double fs = std::sqrt(bh_.squaredNorm() / n_);
+    const double fs =
+        force_scale_ > 0 ? std::max(force_scale_, kMinForceRatio * fb) : kFirstForceRatio * fb;
     if (fs > 0) {
       const double target = settings_.rho * wh_.mean() / fs;
       const double ratio = target / rho_of(rho_idx_);
@@ -439,23 +450,17 @@ SolverResult GroupLassoSolver::solve() {
       break;
     }
     if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval) {
-      const double rp_h = (Ax - zh_).lpNorm<Eigen::Infinity>();
-      const double rd_h = (Pd_.cwiseProduct(xh_) + ATy).lpNorm<Eigen::Infinity>();
-      const double pn = std::max(
-          {(Ax + bh_).lpNorm<Eigen::Infinity>(), (zh_ + bh_).lpNorm<Eigen::Infinity>(), 1e-30});
-      const double dn = std::max(
-          {Pd_.cwiseProduct(xh_).lpNorm<Eigen::Infinity>(), ATy.lpNorm<Eigen::Infinity>(), 1e-30});
-      if (rp_h > 0 && rd_h > 0) {
-        const double target = rho * std::sqrt((rp_h / pn) / (rd_h / dn));
-        const double ratio = target / rho;
-        if (ratio > settings_.adaptive_rho_tolerance ||
-            ratio < 1.0 / settings_.adaptive_rho_tolerance) {
-          rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(target)));
-          rho_idx_ = std::clamp(rho_idx_, -80, 80);
-          ldlt = &factor(rho_idx_, &info.factorizations);
-          rho = rho_of(rho_idx_);
-          aa.reset();
-        }
+      // The same rule as between frames, on the current iterate: a frame unlike the last one
+      // (a contact made or released) gets its rho within the solve.
+      const double fs = std::max(std::sqrt((Ax + bh_).squaredNorm() / n_), kMinForceRatio * fb);
+      const double ratio = settings_.rho * wh_.mean() / fs / rho;
+      if (fs > 0 && (ratio > settings_.adaptive_rho_tolerance ||
+                     ratio < 1.0 / settings_.adaptive_rho_tolerance)) {
+        rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(ratio * rho)));
+        rho_idx_ = std::clamp(rho_idx_, -80, 80);
+        ldlt = &factor(rho_idx_, &info.factorizations);
+        rho = rho_of(rho_idx_);
+        aa.reset();
       }
     }
   }
@@ -472,6 +477,8 @@ SolverResult GroupLassoSolver::solve() {
   for (int j = 0; j < nf_; ++j) res.dU.row(free_(j)) = x.segment<3>(3 * j).transpose();
   for (int i = 0; i < m; ++i) res.dual(i / 3, i % 3) = yh_(i) * E_(i) / s_;
   if (info.status != SolverStatus::non_finite_input) {
+    Ab_.multiply(xh_, Ax);
+    force_scale_ = std::sqrt((Ax + bh_).squaredNorm() / n_);
     V_prev_ = U_ + res.dU;
     dual_prev_ = res.dual;
     have_prev_ = true;

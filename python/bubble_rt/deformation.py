@@ -13,7 +13,6 @@ released. Method "oracle" skips images and asks the simulator's ground truth ins
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -220,6 +219,9 @@ def mesh_laplacian(mesh: Mesh) -> sp.csr_matrix:
     return (sp.diags(deg) - A).tocsr()
 
 
+_DENSE_FILL_MAX = 150
+
+
 def harmonic_fill(
     L: sp.csr_matrix, values: NDArray[np.float64], known: NDArray[np.bool_]
 ) -> NDArray[np.float64]:
@@ -235,9 +237,15 @@ def harmonic_fill(
         return out
     iu = np.flatnonzero(unknown)
     ik = np.flatnonzero(known)
-    Luu = L[iu][:, iu] + sp.identity(len(iu), format="csr") * 1e-9
     rhs = -(L[iu][:, ik] @ out[ik])
-    sol = spla.spsolve(Luu.tocsc(), rhs)
+    if len(iu) <= _DENSE_FILL_MAX:
+        # A few flagged nodes per frame is the usual case: a dense solve is microseconds where
+        # SciPy's sparse setup costs about a millisecond.
+        Luu_d = L[iu][:, iu].toarray() + 1e-9 * np.eye(len(iu))
+        sol = np.linalg.solve(Luu_d, rhs.reshape(len(iu), -1))
+    else:
+        Luu = L[iu][:, iu] + sp.identity(len(iu), format="csr") * 1e-9
+        sol = spla.spsolve(Luu.tocsc(), rhs)
     out[iu] = np.asarray(sol).reshape(len(iu), -1)
     out[~np.isfinite(out)] = 0.0
     return out
@@ -420,10 +428,14 @@ def _neighbour_outliers(
     measured neighbours (needs at least two of them)."""
     ok = (nb >= 0) & measured[np.maximum(nb, 0)]
     G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
-    enough = ok.sum(axis=1) >= 2
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: handled by `enough`
-        med = np.nanmedian(G, axis=1)
+    count = ok.sum(axis=1)
+    enough = count >= 2
+    # nanmedian by sorting (NaNs sort last): several times faster than np.nanmedian here.
+    G.sort(axis=1)
+    rows = np.arange(len(U))
+    lo = G[rows, np.maximum(count - 1, 0) // 2]
+    hi = G[rows, np.maximum(count, 1) // 2 - (count == 0)]
+    med = 0.5 * (lo + hi)
     dev = np.linalg.norm(U - np.nan_to_num(med), axis=1)
     return measured & enough & (dev > tol)
 

@@ -9,7 +9,7 @@ with w_i = k_f |rim| / N on the rim and k_f elsewhere. The rim is exact (its dof
 eliminated). The C++ core runs an OSQP-shaped ADMM: split z = F_ext, x-update a sparse LDLT
 solve factored once per rho (factorizations are cached), z-update a block soft-threshold,
 over-relaxation, Anderson acceleration, warm start from the previous frame's corrected
-displacement and multipliers. rho follows the data (weights over the frame's force scale),
+displacement and multipliers. rho follows the data (weights over the previous solution's force scale),
 so the iterations are unchanged by a change of units.
 Termination is certified: every dual iterate is feasible, so the duality gap bounds how far
 the returned objective is above the optimum.
@@ -36,12 +36,14 @@ class SolverSettings:
 
     Attributes:
         rho: step-size multiplier. The actual ADMM rho of the (non-dimensionalised) problem
-            is ``rho * mean(weights) / rms(nodal force at dU = 0)``, set on the first frame and
-            re-set only when that value moves by more than ``adaptive_rho_tolerance``.
+            is ``rho * mean(weights) / force scale``, the force scale being the rms nodal force
+            of the previous frame's solution (tiny on untouched frames, large in contact); it
+            is re-set only when it moves by more than ``adaptive_rho_tolerance``.
         sigma: proximal term of the x-update (keeps it well posed; tiny).
         alpha: over-relaxation, in (0, 2).
-        adaptive_rho: also rebalance rho inside a solve from the residual ratio (OSQP rule).
-            Off by default: on this problem it tends to pick a worse rho than the data rule.
+        adaptive_rho: re-apply the rho rule inside a solve, from the current iterate's
+            forces, every ``adaptive_rho_interval`` iterations (a contact made or released
+            between two frames).
         adaptive_rho_tolerance: factor by which rho must move before refactoring.
         adaptive_rho_interval: iterations between in-solve rho updates.
         eps_abs: absolute duality-gap tolerance (the objective is dimensionless).
@@ -56,13 +58,13 @@ class SolverSettings:
             restarts automatically when the fixed-point residual jumps.
     """
 
-    rho: float = 100.0
+    rho: float = 0.3
     sigma: float = 1e-6
     alpha: float = 1.6
-    adaptive_rho: bool = False
-    adaptive_rho_tolerance: float = 5.0
+    adaptive_rho: bool = True
+    adaptive_rho_tolerance: float = 2.0
     adaptive_rho_interval: int = 25
-    eps_abs: float = 1e-6
+    eps_abs: float = 1e-5
     eps_rel: float = 8e-4
     max_iter: int = 4000
     check_interval: int = 5
