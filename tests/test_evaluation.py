@@ -120,7 +120,23 @@ def _rec(geometry, estimator, f_est, f_gt, est, gt, **kw):
         gt_contact=np.asarray(gt, bool),
         normals=normals,
         areas=np.ones(n),
+        truth_converged=kw.get("truth_converged", True),
     )
+
+
+def test_unconverged_ground_truth_is_excluded_and_counted():
+    # A physics step that failed gives no ground truth: its (huge) error must not count.
+    recs = [
+        _rec("point", "fem", [0, 0, -1], [0, 0, -1.5], [1, 0], [1, 0]),
+        _rec("point", "fem", [0, 0, -1], [300, 400, 200], [1, 0], [1, 1], truth_converged=False),
+    ]
+    st = aggregate(recs)
+    assert st["force_err_n"] == pytest.approx(0.5)
+    assert st["miou"] == pytest.approx(1.0)
+    assert st["n_frames"] == 1 and st["n_excluded"] == 1
+    s = summarize(recs)
+    assert s["average"]["fem"]["n_excluded"] == 1
+    assert "(+1 excluded)" in markdown_table(s)
 
 
 def test_aggregate_light_touch_and_false_contacts():

@@ -349,6 +349,8 @@ def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
     out = []
     for frame in traj.frames:
         d = tracker.track(frame)
+        if not getattr(frame.truth, "converged", True):
+            continue  # the simulator flags this ground truth as unreliable: no observation
         out.append(
             CalibFrame(
                 U=np.asarray(d.U, dtype=float),

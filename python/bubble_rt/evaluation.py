@@ -22,6 +22,11 @@ Metrics (all per frame, aggregated per geometry and estimator):
 Force errors are averaged over all frames of a trajectory (untouched ones included), as the
 paper's table does; ``force_err_contact_n`` averages over in-contact frames only.
 
+Frames whose simulated ground truth did not converge (``truth.converged`` False: the physics
+step failed even in substeps) are still run through the estimators, so warm starts see the
+whole trajectory, but are left out of every statistic and counted in ``n_excluded``: a force
+the simulator itself flags as unreliable is no ground truth.
+
 The fan-out helper :func:`run_tasks` maps a picklable function over tasks on a local process
 pool (``workers``) or, given a Dask scheduler address, on a Dask distributed cluster.
 """
@@ -148,6 +153,7 @@ class FrameMetrics:
     est_nodes: int
     false_nodes: int
     time_ms: float = float("nan")
+    truth_converged: bool = True
 
 
 def frame_metrics(
@@ -164,6 +170,7 @@ def frame_metrics(
     areas: NDArray[np.float64],
     interior: NDArray[np.bool_] | None = None,
     time_ms: float = float("nan"),
+    truth_converged: bool = True,
 ) -> FrameMetrics:
     """All per-frame metrics for one estimate against its ground truth."""
     e = np.asarray(est_contact, dtype=bool)
@@ -187,6 +194,7 @@ def frame_metrics(
         est_nodes=int(e.sum()),
         false_nodes=int(np.count_nonzero(e & ~g)),
         time_ms=float(time_ms),
+        truth_converged=bool(truth_converged),
     )
 
 
@@ -197,7 +205,8 @@ def _nanmean(values: Iterable[float]) -> float:
 
 def aggregate(records: Sequence[FrameMetrics]) -> dict[str, float]:
     """Summary statistics of a group of frame records (see the module docstring)."""
-    recs = list(records)
+    recs = [r for r in records if r.truth_converged]
+    n_excluded = len(records) - len(recs)
     light = [r for r in recs if r.gt_contact and float(np.linalg.norm(r.f_gt)) < LIGHT_TOUCH_N]
     untouched = [r for r in recs if not r.gt_contact]
     contact = [r for r in recs if r.gt_contact]
@@ -218,6 +227,7 @@ def aggregate(records: Sequence[FrameMetrics]) -> dict[str, float]:
         "n_frames": float(len(recs)),
         "n_light": float(len(light)),
         "n_untouched": float(len(untouched)),
+        "n_excluded": float(n_excluded),
     }
 
 
@@ -256,6 +266,7 @@ def summarize(records: Sequence[FrameMetrics]) -> dict[str, Any]:
         per = [geoms[g][e] for g in geoms if e in geoms[g]]
         stats = {k: _nanmean(p[k] for p in per) for k in SUMMARY_KEYS}
         stats["n_frames"] = float(sum(p["n_frames"] for p in per))
+        stats["n_excluded"] = float(sum(p["n_excluded"] for p in per))
         average[e] = stats
     return {"geometries": geoms, "average": average}
 
@@ -280,14 +291,15 @@ def markdown_table(summary: dict[str, Any]) -> str:
     rows = list(summary["geometries"].items()) + [("average", summary["average"])]
     for name, per in rows:
         cells = [name]
-        n = 0.0
+        n, x = 0.0, 0.0
         for e in ests:
             st = per.get(e)
             for _, key, d in cols:
                 cells.append(_fmt(st[key], d) if st else "-")
             if st:
                 n = max(n, st["n_frames"])
-        cells.append(str(int(n)))
+                x = max(x, st.get("n_excluded", 0.0))
+        cells.append(str(int(n)) + (f" (+{int(x)} excluded)" if x else ""))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -654,6 +666,7 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
                     areas=areas,
                     interior=interior,
                     time_ms=ms,
+                    truth_converged=bool(getattr(frame.truth, "converged", True)),
                 )
             )
             if i in task.keep_fields:
