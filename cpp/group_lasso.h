@@ -41,7 +41,7 @@
 namespace bubble {
 
 struct SolverSettings {
-  double rho = 0.3;                    // multiplier of the data-driven rho (see above)
+  double rho = 0.5;                    // multiplier of the data-driven rho (see above)
   double sigma = 1e-6;                 // proximal regularisation of the x-update
   double alpha = 1.6;                  // over-relaxation in (0, 2)
   bool adaptive_rho = true;            // re-set rho inside a solve from the iterate's forces

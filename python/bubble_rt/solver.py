@@ -58,7 +58,7 @@ class SolverSettings:
             restarts automatically when the fixed-point residual jumps.
     """
 
-    rho: float = 0.3
+    rho: float = 0.5
     sigma: float = 1e-6
     alpha: float = 1.6
     adaptive_rho: bool = True
