@@ -260,6 +260,42 @@ def test_penetration_is_sub_millimetre(friction_run):
         assert d.min() > -1e-4
 
 
+def test_point_pin_pressed_obliquely_does_not_tunnel_between_nodes():
+    """The 3 mm pin, tilted 25 degrees, pressed 15 mm along its axis into a coarse mesh (edges
+    about as long as the pin is wide). With contact tested at nodes only, its tip slid between
+    them and through the membrane: the push stalled at about 1 N with every step "converged"."""
+    mesh = default_rest_mesh(600)
+    sim = MembraneSim(mesh, contact=ContactSettings(friction=0.5))
+    V = sim.inflate().vertices
+    at = np.array([0.012, 0.008])
+    z0 = V[np.argmin(np.hypot(*(V[:, :2] - at).T)), 2]
+    a, t = np.radians(60), np.radians(25)
+    k = np.array([np.cos(a), np.sin(a), 0.0])  # tilt axis, horizontal
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    R = np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+    pin = preset("point")
+    # A barycentric lattice on every triangle: the membrane between the nodes.
+    lat = np.array([[i, j, 8 - i - j] for i in range(9) for j in range(9 - i)]) / 8.0
+    pushes = []
+    for step in range(1, 11):
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = np.array([*at, z0]) - 0.0015 * step * R[:, 2]
+        s = sim.solve(pin, T)
+        assert s.converged, step
+        assert s.contact.any(), step  # also where only the triangles' samples touch the pin
+        f = s.net_contact_force
+        assert np.all(np.isfinite(f))
+        pushes.append(-f @ R[:, 2])
+        d, _ = pin.distance(s.vertices, s.pose)
+        assert d.min() > -2e-4, step
+        surface = np.einsum("sk,tkd->tsd", lat, s.vertices[s.triangles]).reshape(-1, 3)
+        assert pin.distance(surface, s.pose)[0].min() > -1e-3, step
+    # Every millimetre deeper pushes harder: a tunnelling pin would lose its grip.
+    assert np.all(np.diff(pushes) > 0.1), np.round(pushes, 3)
+    assert pushes[-1] > 4.0
+
+
 def test_mesh_refinement_changes_net_force_by_less_than_3_percent():
     forces = []
     for n in (1500, 3000):
@@ -298,12 +334,18 @@ def test_failing_step_is_retried_in_substeps_and_reported(small_mesh):
 
 def test_step_that_cannot_converge_is_flagged_not_accepted(small_mesh, caplog):
     sim = MembraneSim(small_mesh, contact=ContactSettings(friction=None))
-    top = _apex(sim.inflate())
+    ref = sim.inflate()
+    top = _apex(ref)
     sim.newton = NewtonSettings(max_iterations=1, max_halvings=2)
     with caplog.at_level(logging.WARNING):
         s = sim.solve(preset("round"), _pose(z=top - 0.008))
     assert not s.converged and s.substeps == 4 and s.notes == ("not converged",)
     assert "did not converge" in caplog.text
+    # What is kept and reported is the last equilibrium, not the failed iterate.
+    assert np.array_equal(s.vertices, ref.vertices) and s.pose is None
+    assert not s.contact.any() and np.all(s.contact_forces == 0)
+    sim.newton = NewtonSettings()
+    assert sim.solve(preset("round"), _pose(z=top - 0.008)).converged
     sim.newton = NewtonSettings(max_iterations=1, max_halvings=0, strict=True)
     sim.reset_to_reference()
     with pytest.raises(SimConvergenceError):
@@ -330,6 +372,8 @@ def test_bad_inputs_raise_value_error(small_mesh):
         GasSettings(chamber_volume_m3=-1.0)
     with pytest.raises(ValueError):
         ContactSettings(friction=-0.1)
+    with pytest.raises(ValueError, match="surface_samples"):
+        ContactSettings(surface_samples=2)  # not the interior of a barycentric grid
     sim = MembraneSim(small_mesh)
     with pytest.raises(ValueError):
         sim.solve(preset("round"), np.eye(3))

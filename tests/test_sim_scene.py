@@ -130,6 +130,14 @@ def test_physics_key_ignores_sensor_noise_but_not_friction():
     assert a.physics_key("0") != a.physics_key("1")  # package version is part of the key
 
 
+def test_physics_key_changes_with_the_physics_revision(monkeypatch):
+    import bubble_rt.sim.physics as physics
+
+    a = parse_scene(BASE).physics_key("0")
+    monkeypatch.setattr(physics, "PHYSICS_REVISION", physics.PHYSICS_REVISION + 1)
+    assert parse_scene(BASE).physics_key("0") != a
+
+
 def test_surface_keyframes_touch_at_zero_depth_and_press_by_depth():
     m = Mesh.generate(600)
     surf = ReferenceSurface(m.vertices, m.triangles)

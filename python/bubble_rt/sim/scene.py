@@ -168,9 +168,14 @@ class Scene:
         return replace(self, **changes)
 
     def physics_key(self, version: str) -> str:
-        """Hash of everything the physics depends on, plus the package version."""
+        """Hash of everything the physics depends on, plus the package version and the physics
+        revision (``bubble_rt.sim.physics.PHYSICS_REVISION``)."""
+        # Imported here: the physics pulls in NumPy/SciPy, and scenes load without them.
+        from bubble_rt.sim.physics import PHYSICS_REVISION
+
         payload = {
             "version": version,
+            "physics_revision": PHYSICS_REVISION,
             "sim_nodes": self.sensor.sim_nodes,
             "physics": asdict(self.physics),
             "indenter": asdict(self.indenter),
