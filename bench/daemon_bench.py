@@ -23,7 +23,7 @@ import sys
 import time
 
 import numpy as np
-from bubble_rt.client import Controller, Subscriber
+from bubble_rt.io.client import Controller, Subscriber
 
 
 def free_port() -> int:

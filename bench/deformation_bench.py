@@ -33,8 +33,8 @@ sys.path.insert(0, str(ROOT / "python"))
 
 from bubble_rt import _core  # noqa: E402
 from bubble_rt.camera import Camera  # noqa: E402
-from bubble_rt.deformation import DeformationTracker, FlowSettings, Reference  # noqa: E402
-from bubble_rt.fitting import fit_mesh  # noqa: E402
+from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference  # noqa: E402
+from bubble_rt.estimation.fitting import fit_mesh  # noqa: E402
 from bubble_rt.frames import Frame  # noqa: E402
 from bubble_rt.mesh import Mesh  # noqa: E402
 from scipy.ndimage import map_coordinates  # noqa: E402
@@ -177,7 +177,7 @@ def _real_frames(repeats: int) -> dict[str, float] | None:
     data = ROOT.parent / "shared" / "data" / "punyo-demo-0"
     if not data.exists():
         return None
-    from bubble_rt.recordings import open_recording
+    from bubble_rt.io.recordings import open_recording
 
     rec = open_recording(data)
     ref = Reference.capture([rec[i] for i in range(5)])

@@ -26,7 +26,7 @@ def main() -> int:
     p.add_argument("--json", default=None)
     args = p.parse_args()
 
-    from bubble_rt import evaluation as ev
+    from bubble_rt import eval as ev
 
     geoms = [g for g in args.geometries.split(",") if g]
     tasks = ev.make_tasks(geoms, args.trajectories, args.frames, mesh="medium")

@@ -17,10 +17,10 @@ import os
 import time
 
 import numpy as np
-from bubble_rt.membrane import MembraneModel
+from bubble_rt.estimation.membrane import MembraneModel
+from bubble_rt.estimation.solver import GroupLassoSolver, SolverSettings
 from bubble_rt.mesh import Mesh
 from bubble_rt.reference import GroupLassoProblem
-from bubble_rt.solver import GroupLassoSolver, SolverSettings
 
 K_F, K_U = 0.3322, 537592.0
 

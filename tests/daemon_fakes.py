@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
-from bubble_rt.sources import ConstantPressure, IterableCamera
 
 H, W = 24, 32
 P0 = 101325.0
@@ -166,7 +166,7 @@ def main() -> None:
     import argparse
 
     from bubble_rt.commands.serve import install_signal_handlers, serve_until
-    from bubble_rt.daemon import Daemon
+    from bubble_rt.daemon.service import Daemon
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--pub", required=True)

@@ -1,4 +1,4 @@
-"""Tests of the frictionless baseline (bubble_rt.baseline) on ray-cast synthetic depth."""
+"""Tests of the frictionless baseline (bubble_rt.estimation.baseline) on ray-cast synthetic depth."""
 
 from __future__ import annotations
 
@@ -10,13 +10,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from bubble_rt import reference as ref
-from bubble_rt.baseline import (
+from bubble_rt.camera import Camera
+from bubble_rt.estimation.baseline import (
     FrictionlessEstimator,
     FrictionlessSettings,
     cotangent_laplacian,
     fit_dome,
 )
-from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
 

@@ -6,7 +6,7 @@ import json
 import math
 
 import pytest
-from bubble_rt.benchmark import pareto_front
+from bubble_rt.eval.benchmark import pareto_front
 
 
 def _pt(t, e, m):
@@ -74,7 +74,7 @@ def test_bench_tiny_run_json_keys(tmp_path):
 
 @pytest.mark.parametrize("key", ["hz", "speedup"])
 def test_bench_table_renders_missing_values(key):
-    from bubble_rt.benchmark import mesh_table
+    from bubble_rt.eval.benchmark import mesh_table
 
     res = {
         "meshes": {

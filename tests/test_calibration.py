@@ -8,7 +8,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from bubble_rt.calibration import (
+from bubble_rt.eval import FanOut, load_config_overrides, lumped_areas, vertex_normals
+from bubble_rt.eval.calibration import (
     DEFAULTS,
     CalibFrame,
     CalibrationProblem,
@@ -17,7 +18,6 @@ from bubble_rt.calibration import (
     frame_loss,
     write_config,
 )
-from bubble_rt.evaluation import FanOut, load_config_overrides, lumped_areas, vertex_normals
 from bubble_rt.mesh import Mesh
 
 

@@ -7,9 +7,9 @@ import json
 import threading
 
 import pytest
-from bubble_rt.client import ControlError, Controller, Subscriber, control_address_for
 from bubble_rt.commands.echo import RateMeter, echo, format_line
-from bubble_rt.daemon import Daemon
+from bubble_rt.daemon.service import Daemon
+from bubble_rt.io.client import ControlError, Controller, Subscriber, control_address_for
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, free_port
 
 pytestmark = pytest.mark.timeout(60)
@@ -107,7 +107,7 @@ def test_rate_meter():
 
 
 def test_format_line_marks_degraded():
-    from bubble_rt import protocol
+    from bubble_rt.io import protocol
 
     msg = protocol.encode_force_frame(
         sensor_id="s",
@@ -129,7 +129,7 @@ def test_record_command_records_for_a_duration(daemon, tmp_path):
     import argparse
 
     from bubble_rt.commands import record
-    from bubble_rt.recording import McapRecording
+    from bubble_rt.io.mcap import McapRecording
 
     out = tmp_path / "cli.mcap"
     args = argparse.Namespace(output=str(out), control=daemon.control_address, duration=0.5)

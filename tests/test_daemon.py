@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 import zmq
-from bubble_rt import protocol
-from bubble_rt.client import ControlError, Controller, Subscriber
-from bubble_rt.daemon import Daemon, DaemonError, PatchFinder, lumped_areas, validate_params
+from bubble_rt.daemon.service import Daemon, DaemonError, PatchFinder, lumped_areas, validate_params
+from bubble_rt.io import protocol
+from bubble_rt.io.client import ControlError, Controller, Subscriber
 from bubble_rt.mesh import Mesh
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
 
@@ -264,7 +264,7 @@ def test_port_in_use_is_a_clear_error(daemon):
 
 
 def test_stale_pressure_marks_frames_degraded():
-    from bubble_rt.sources import PressureBuffer
+    from bubble_rt.daemon.sources import PressureBuffer
 
     buf = PressureBuffer(16)
     buf.push(time.time() - 10.0, 101325.0)
@@ -302,7 +302,7 @@ def test_drops_are_counted_when_processing_is_slow():
 
 
 def test_record_start_stop_via_control(daemon, tmp_path):
-    from bubble_rt.recording import McapRecording
+    from bubble_rt.io.mcap import McapRecording
 
     d, _ = daemon
     path = tmp_path / "rec.mcap"
@@ -358,7 +358,7 @@ def test_camera_and_serial_pressure_combine(tmp_path):
 
     sensor = FakeSensor(str(tmp_path / "tty"))
     cfg = fake_config(**{"pressure.source": f"serial:{sensor.link}", "pressure.reconnect_s": 0.05})
-    from bubble_rt.sources import make_pressure_source
+    from bubble_rt.daemon.sources import make_pressure_source
 
     cam = ScriptedCamera()
     pressure = make_pressure_source(cfg.pressure, cam)

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.client import Controller, Subscriber
-from bubble_rt.daemon import Daemon
+from bubble_rt.daemon.service import Daemon
+from bubble_rt.io.client import Controller, Subscriber
 from daemon_fakes import fake_config
 
 pytestmark = pytest.mark.timeout(300)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.deformation import (
+from bubble_rt.estimation.deformation import (
     FLAG_FLOW_UNRELIABLE,
     FLAG_INVALID_DEPTH,
     FLAG_OUTSIDE_IMAGE,
@@ -19,7 +19,7 @@ from bubble_rt.deformation import (
     lift_pixels,
     mesh_laplacian,
 )
-from bubble_rt.fitting import fit_mesh
+from bubble_rt.estimation.fitting import fit_mesh
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 from scipy.ndimage import map_coordinates
@@ -317,7 +317,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
 
 
 def test_identical_frames_give_zero_force_and_no_contact(scene):
-    from bubble_rt.estimator import ForceEstimator
+    from bubble_rt.estimation.estimator import ForceEstimator
 
     cam, depth, img, ref, mesh = scene
     est = ForceEstimator(mesh)
@@ -331,8 +331,8 @@ def test_identical_frames_give_zero_force_and_no_contact(scene):
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_real_untouched_frames_give_no_contact_and_small_force():
-    from bubble_rt.estimator import ForceEstimator
-    from bubble_rt.recordings import open_recording
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.io.recordings import open_recording
 
     rec = open_recording(DATA)
     ref = Reference.capture([rec[i] for i in range(5)])

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from bubble_rt.client import Controller, Subscriber
+from bubble_rt.io.client import Controller, Subscriber
 from daemon_fakes import free_port
 
 pytestmark = [pytest.mark.timeout(400), pytest.mark.slow]

@@ -11,7 +11,7 @@ from bubble_rt.camera import Camera
 from bubble_rt.cli import main
 from bubble_rt.commands.estimate import parse_frames
 from bubble_rt.frames import Frame
-from bubble_rt.recordings import write_png_recording
+from bubble_rt.io.recordings import write_png_recording
 from synth_rgbd import dome_depth, texture, warp
 
 
@@ -23,7 +23,7 @@ def test_parse_frames_ranges_and_lists():
 
 def test_flow_choices_match_the_tracker():
     from bubble_rt.commands.estimate import FLOW_CHOICES
-    from bubble_rt.deformation import FLOW_METHODS
+    from bubble_rt.estimation.deformation import FLOW_METHODS
 
     assert set(FLOW_CHOICES) == set(FLOW_METHODS) - {"oracle"}
 

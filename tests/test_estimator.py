@@ -8,10 +8,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from bubble_rt.estimator import Estimate, EstimatorConfig, ForceEstimator, make_estimator
-from bubble_rt.membrane import Material
+from bubble_rt.estimation.estimator import Estimate, EstimatorConfig, ForceEstimator, make_estimator
+from bubble_rt.estimation.membrane import Material
+from bubble_rt.estimation.solver import SolverSettings
 from bubble_rt.mesh import Mesh
-from bubble_rt.solver import SolverSettings
 
 
 @functools.cache

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.evaluation import (
+from bubble_rt.eval import (
     FanOut,
     aggregate,
     contact_iou,
@@ -251,7 +251,7 @@ def test_eval_command_end_to_end_on_a_tiny_dataset(tmp_path):
 
 def test_eval_trajectory_same_on_dask_as_inline():
     distributed = pytest.importorskip("distributed")
-    from bubble_rt.evaluation import evaluate_trajectory, make_tasks
+    from bubble_rt.eval import evaluate_trajectory, make_tasks
 
     tasks = make_tasks(["round"], 1, 4, mesh="coarse", estimators=("fem",))
     inline = run_tasks(evaluate_trajectory, tasks)
@@ -270,7 +270,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
 
 @pytest.mark.skipif(not DATA.exists(), reason="shared real data not present")
 def test_recording_eval_on_untouched_real_frames():
-    from bubble_rt.evaluation import evaluate_recording, recording_table
+    from bubble_rt.eval import evaluate_recording, recording_table
 
     res = evaluate_recording(DATA, estimators=("fem",), n_reference=5, max_frames=12)
     assert res["frames"] == 7

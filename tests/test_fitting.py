@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.deformation import Reference
-from bubble_rt.fitting import centre_pose, dome_apex, fit_mesh, surface_residuals
+from bubble_rt.estimation.deformation import Reference
+from bubble_rt.estimation.fitting import centre_pose, dome_apex, fit_mesh, surface_residuals
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh, MeshGeometry
 from synth_rgbd import dome_depth, texture
@@ -81,7 +81,7 @@ def test_fitted_mesh_save_load_round_trip(tmp_path):
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_fit_real_recording_nodes_on_observed_surface():
-    from bubble_rt.recordings import open_recording
+    from bubble_rt.io.recordings import open_recording
 
     rec = open_recording(DATA)
     ref = Reference.capture([rec[i] for i in range(5)])
@@ -136,7 +136,7 @@ def test_centre_pose_refuses_a_wrong_initial_pose():
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_real_recording_placement_from_data():
-    from bubble_rt.recordings import open_recording, punyo_pose
+    from bubble_rt.io.recordings import open_recording, punyo_pose
 
     rec = open_recording(DATA)
     # The in-plane correction over the public placement is small ...

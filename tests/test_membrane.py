@@ -6,7 +6,7 @@ import functools
 
 import numpy as np
 import pytest
-from bubble_rt.membrane import Material, MembraneModel
+from bubble_rt.estimation.membrane import Material, MembraneModel
 from bubble_rt.mesh import Mesh
 from hypothesis import given, settings
 from hypothesis import strategies as st

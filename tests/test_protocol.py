@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt import protocol
-from bubble_rt.protocol import Patch, ProtocolError, pb
+from bubble_rt.io import protocol
+from bubble_rt.io.protocol import Patch, ProtocolError, pb
 
 PROTO_DIR = Path(__file__).resolve().parents[1] / "proto"
 
@@ -165,9 +165,9 @@ def test_status_decode():
 
 def test_client_imports_no_estimator():
     code = (
-        "import sys, bubble_rt.client\n"
-        "bad = [m for m in sys.modules if m.startswith(('bubble_rt._core', 'bubble_rt.estimator',"
-        " 'bubble_rt.daemon', 'bubble_rt.sources', 'scipy', 'cv2'))]\n"
+        "import sys, bubble_rt.io.client\n"
+        "bad = [m for m in sys.modules if m.startswith(('bubble_rt._core', 'bubble_rt.estimation.estimator',"
+        " 'bubble_rt.daemon.service', 'bubble_rt.daemon.sources', 'scipy', 'cv2'))]\n"
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

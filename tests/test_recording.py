@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.daemon import Daemon
-from bubble_rt.recording import (
+from bubble_rt.daemon.service import Daemon
+from bubble_rt.daemon.sources import ReplayCamera
+from bubble_rt.io.mcap import (
     TOPIC_DEPTH,
     TOPIC_RGB,
     McapRecording,
@@ -23,7 +24,6 @@ from bubble_rt.recording import (
     iter_messages,
     write_recording,
 )
-from bubble_rt.sources import ReplayCamera
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, make_frame
 
 pytestmark = pytest.mark.timeout(90)
@@ -79,7 +79,7 @@ def test_recording_survives_a_killed_process(tmp_path):
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from daemon_fakes import make_frame
         from bubble_rt.camera import Camera
-        from bubble_rt.recording import Recorder
+        from bubble_rt.io.mcap import Recorder
         rec = Recorder({str(p)!r}, Camera.d405(), chunk_size=1 << 30, flush_s=0.05)
         for i in range(10):
             rec.write_frame(make_frame(i))

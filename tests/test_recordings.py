@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.deformation import Reference
+from bubble_rt.estimation.deformation import Reference
 from bubble_rt.frames import Frame, FrameError
-from bubble_rt.recordings import (
+from bubble_rt.io.recordings import (
     PngRecording,
     PunyoRecording,
     open_recording,

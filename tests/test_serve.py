@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from bubble_rt.client import Subscriber
+from bubble_rt.io.client import Subscriber
 from daemon_fakes import free_port
 
 pytestmark = pytest.mark.timeout(90)

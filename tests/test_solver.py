@@ -7,9 +7,9 @@ import threading
 
 import numpy as np
 import pytest
-from bubble_rt.membrane import Material, MembraneModel
+from bubble_rt.estimation.membrane import Material, MembraneModel
+from bubble_rt.estimation.solver import GroupLassoSolver, SolverResult, SolverSettings
 from bubble_rt.mesh import MIN_ANGLE_DEG, Mesh, triangle_angles_deg
-from bubble_rt.solver import GroupLassoSolver, SolverResult, SolverSettings
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

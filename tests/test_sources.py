@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
-from bubble_rt.sources import (
+from bubble_rt.daemon.sources import (
     ConstantPressure,
     IterableCamera,
     LatestSlot,
@@ -450,7 +450,7 @@ class FakeSimulator:
 
 
 def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
-    from bubble_rt.sources import SimCamera
+    from bubble_rt.daemon.sources import SimCamera
 
     monkeypatch.setitem(
         sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=FakeSimulator)
@@ -468,7 +468,7 @@ def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
 
 
 def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
-    from bubble_rt.sources import SimCamera
+    from bubble_rt.daemon.sources import SimCamera
 
     def boom(scene):
         raise ValueError("no scene named 'nope'")

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from .camera import Camera
+    from bubble_rt.camera import Camera
 
 HPA = 100.0  # pascals per hectopascal
 

@@ -25,8 +25,8 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from dataclasses import replace
 
-    from bubble_rt import benchmark as bm
-    from bubble_rt.evaluation import write_json
+    from bubble_rt.eval import benchmark as bm
+    from bubble_rt.eval import write_json
 
     s = bm.BenchSettings.quick() if args.quick else bm.BenchSettings()
     if args.frames:

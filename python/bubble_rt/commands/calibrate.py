@@ -27,8 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    from bubble_rt import calibration as cal
-    from bubble_rt.evaluation import FanOut
+    from bubble_rt.eval import FanOut
+    from bubble_rt.eval import calibration as cal
 
     n_round, n_point, frames, max_evals = args.round, args.point, args.frames, args.max_evals
     if args.quick:

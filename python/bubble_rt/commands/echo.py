@@ -63,8 +63,8 @@ def echo(
     """Print frames until ``count`` frames, ``timeout_s`` of silence or ``stop`` is set."""
     import time
 
-    from bubble_rt.client import Subscriber
-    from bubble_rt.protocol import ForceFrameData
+    from bubble_rt.io.client import Subscriber
+    from bubble_rt.io.protocol import ForceFrameData
 
     out = out or sys.stdout
     n = 0

@@ -42,7 +42,7 @@ def parse_frames(spec: str, n: int) -> list[int]:
     return out
 
 
-#: Image-based methods of bubble_rt.deformation.FLOW_METHODS (not imported: --help stays fast).
+#: Image-based methods of bubble_rt.estimation.deformation.FLOW_METHODS (not imported: --help stays fast).
 FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy")
 
 
@@ -76,11 +76,11 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from bubble_rt.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.estimator import ForceEstimator
-    from bubble_rt.fitting import fit_mesh
+    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.fitting import fit_mesh
+    from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES, Mesh
-    from bubble_rt.recordings import open_recording
 
     rec = open_recording(args.recording)
     n = len(rec)

@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    from bubble_rt import evaluation as ev
+    from bubble_rt import eval as ev
 
     overrides = ev.load_config_overrides(args.config)
     estimators = tuple(e.strip() for e in args.estimators.split(",") if e.strip())

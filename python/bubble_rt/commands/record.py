@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace, stop: threading.Event) -> int:
-    from bubble_rt.client import ControlError, Controller
+    from bubble_rt.io.client import ControlError, Controller
 
     path = str(Path(args.output).resolve())
     with Controller(args.control, timeout_s=5.0) as ctl:

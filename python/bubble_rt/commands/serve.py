@@ -57,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
     import logging
 
     from bubble_rt.config import ConfigError
-    from bubble_rt.daemon import Daemon, DaemonError
-    from bubble_rt.sources import SourceError
+    from bubble_rt.daemon.service import Daemon, DaemonError
+    from bubble_rt.daemon.sources import SourceError
 
     logging.basicConfig(level=logging.INFO, format="bubble-rt serve: %(message)s")
     try:

@@ -37,8 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bubble_rt.mesh import Mesh, MeshGeometry
-
-from .indenters import Indenter
+from bubble_rt.sim.indenters import Indenter
 
 __all__ = [
     "MembraneMaterial",

@@ -2,7 +2,7 @@
 
 Threads (all daemon threads, all loops bounded by timeouts so shutdown takes < 2 s):
 
-* capture: one per source (``bubble_rt.sources``), feeding a one-item latest-value slot
+* capture: one per source (``bubble_rt.daemon.sources``), feeding a one-item latest-value slot
   (camera) or a pressure ring buffer;
 * stage 1: takes the newest camera frame, pairs it with the pressure interpolated at its
   capture time, captures the reference (first K frames, and again on ``tare``) and tracks
@@ -32,13 +32,9 @@ import numpy as np
 import zmq
 from numpy.typing import NDArray
 
-from bubble_rt import protocol
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
-from bubble_rt.frames import Frame
-from bubble_rt.mesh import Mesh
-from bubble_rt.protocol import pb
-from bubble_rt.sources import (
+from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
     PressureBuffer,
@@ -47,6 +43,10 @@ from bubble_rt.sources import (
     make_pressure_source,
     pair_pressure,
 )
+from bubble_rt.frames import Frame
+from bubble_rt.io import protocol
+from bubble_rt.io.protocol import pb
+from bubble_rt.mesh import Mesh
 
 #: Largest message the control socket accepts at the transport level (bigger: dropped by ZMQ).
 CONTROL_MAX_TRANSPORT_BYTES = 16 * 1024 * 1024
@@ -78,9 +78,9 @@ class EstimatorProcessor:
     """The real pipeline: Reference -> fit_mesh -> DeformationTracker + make_estimator."""
 
     def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
-        from bubble_rt.deformation import Reference
-        from bubble_rt.estimator import EstimatorConfig
-        from bubble_rt.membrane import Material
+        from bubble_rt.estimation.deformation import Reference
+        from bubble_rt.estimation.estimator import EstimatorConfig
+        from bubble_rt.estimation.membrane import Material
 
         ec = config.estimator
         self.config = config
@@ -91,7 +91,7 @@ class EstimatorProcessor:
             Mesh.preset(ec.mesh) if ec.mesh in ("coarse", "medium", "fine") else Mesh.load(ec.mesh)
         )
         if ec.fit_mesh:
-            from bubble_rt.fitting import fit_mesh
+            from bubble_rt.estimation.fitting import fit_mesh
 
             self.mesh = fit_mesh(template, reference, camera)
         else:
@@ -107,7 +107,7 @@ class EstimatorProcessor:
         self._build(reference)
 
     def _solver_settings(self) -> Any:
-        from bubble_rt.solver import SolverSettings
+        from bubble_rt.estimation.solver import SolverSettings
 
         sc = self.config.solver
         wanted: dict[str, Any] = {"time_limit": sc.time_limit_ms / 1e3}
@@ -115,14 +115,14 @@ class EstimatorProcessor:
         return SolverSettings(**{k: v for k, v in wanted.items() if k in names})
 
     def _flow_settings(self) -> Any:
-        from bubble_rt.deformation import FlowSettings
+        from bubble_rt.estimation.deformation import FlowSettings
 
         names = {f.name for f in dataclasses.fields(FlowSettings)}
         wanted = dataclasses.asdict(self.config.flow)
         return FlowSettings(**{k: v for k, v in wanted.items() if k in names})
 
     def _build(self, reference: Any, estimator: bool = True) -> None:
-        from bubble_rt.estimator import make_estimator
+        from bubble_rt.estimation.estimator import make_estimator
 
         self.reference = reference
         if estimator:
@@ -130,7 +130,7 @@ class EstimatorProcessor:
                 self.kind, self.mesh, self.est_config, camera=self.camera, reference=reference
             )
         if self.kind == "fem":
-            from bubble_rt.deformation import DeformationTracker
+            from bubble_rt.estimation.deformation import DeformationTracker
 
             self.tracker = DeformationTracker(
                 self.mesh, self.camera, reference, self._flow_settings()
@@ -148,7 +148,7 @@ class EstimatorProcessor:
         return replace(est, timings_ms=timings, valid_node_fraction=data.valid_fraction)
 
     def set_reference(self, frames: list[Frame]) -> None:
-        from bubble_rt.deformation import Reference
+        from bubble_rt.estimation.deformation import Reference
 
         # The FEM estimator depends on the mesh only: keep it (and its factorisation).
         self._build(Reference.capture(frames), estimator=self.kind != "fem")
@@ -745,7 +745,7 @@ class Daemon:
         return protocol.error_reply(f"unknown request {kind!r}")  # pragma: no cover
 
     def _start_recording(self, path: str) -> None:
-        from bubble_rt.recording import Recorder
+        from bubble_rt.io.mcap import Recorder
 
         rc = self.config.recording
         rec = Recorder(
@@ -763,7 +763,7 @@ class Daemon:
 
 
 def recording_topic(name: str) -> str:
-    from bubble_rt import recording
+    from bubble_rt.io import mcap as recording
 
     return {"mesh": recording.TOPIC_MESH}[name]
 

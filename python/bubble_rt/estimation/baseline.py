@@ -36,9 +36,9 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from bubble_rt.estimator import Estimate
+from bubble_rt.estimation.estimator import Estimate
+from bubble_rt.estimation.solver import SolverInfo
 from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
-from bubble_rt.solver import SolverInfo
 
 __all__ = [
     "FrictionlessSettings",
@@ -452,7 +452,7 @@ class FrictionlessEstimator:
 
 
 def _timing_main(argv: list[str] | None = None) -> int:
-    """``python3 -m bubble_rt.baseline``: time per frame on a synthetic ray-cast sequence."""
+    """``python3 -m bubble_rt.estimation.baseline``: time per frame on a synthetic ray-cast sequence."""
     import argparse
     from types import SimpleNamespace
 

@@ -14,7 +14,7 @@ black-box optimiser (Nelder-Mead, or Powell) over ``x = log(theta / theta_defaul
 
 The per-frame displacements (U, dp) are computed once (flow + lifting are independent of the
 three parameters) and cached, so one loss evaluation is only solves. Frames are split into
-chunks evaluated in parallel (:class:`bubble_rt.evaluation.FanOut`); each worker keeps its
+chunks evaluated in parallel (:class:`bubble_rt.eval.FanOut`); each worker keeps its
 estimator across evaluations (a change of E rebuilds K, k_f / k_u are a cheap reconfigure).
 """
 
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bubble_rt.evaluation import CALIB_SEED_BASE, FanOut, lumped_areas
+from bubble_rt.eval import CALIB_SEED_BASE, FanOut, lumped_areas
 
 PARAMS = ("E", "k_f", "k_u")
 #: Paper defaults (method.md section 3).
@@ -94,8 +94,8 @@ def frame_loss(
 # ------------------------------------------------------------------------- estimator factories
 def fem_factory(mesh: Any, params: dict[str, float]) -> Any:
     """The product's FEM estimator for these parameters (E in Pa, k_f, k_u)."""
-    from bubble_rt.estimator import ForceEstimator
-    from bubble_rt.evaluation import estimator_config
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.eval import estimator_config
 
     return ForceEstimator(mesh, estimator_config(params))
 
@@ -328,8 +328,8 @@ def default_trajectories(
 
 def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
     """Simulate one trajectory and compute its (U, dp) per frame with the deformation tracker."""
-    from bubble_rt.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.evaluation import estimator_mesh, simulate_trajectory
+    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
+    from bubble_rt.eval import estimator_mesh, simulate_trajectory
 
     traj = simulate_trajectory(
         task.geometry,

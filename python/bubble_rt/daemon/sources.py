@@ -30,7 +30,7 @@ from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
 
 T = TypeVar("T")
-log = logging.getLogger("bubble_rt.sources")
+log = logging.getLogger("bubble_rt.daemon.sources")
 HPA = 100.0
 
 
@@ -409,16 +409,16 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
         raise SourceError(f"replay: no such recording {path!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
     if p.suffix == ".mcap":
-        from bubble_rt.recording import McapRecording
+        from bubble_rt.io.mcap import McapRecording
 
         rec: Any = McapRecording(p)
         if rec.has_reference:
             reference = rec.reference_frames
     else:
         try:
-            from bubble_rt.recordings import open_recording
+            from bubble_rt.io.recordings import open_recording
         except ImportError as exc:
-            raise SourceError(f"replay of {path!r} needs bubble_rt.recordings: {exc}") from exc
+            raise SourceError(f"replay of {path!r} needs bubble_rt.io.recordings: {exc}") from exc
         rec = open_recording(p)
 
     def frames() -> Iterator[Frame]:

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bubble_rt import _validate
-from bubble_rt.membrane import MembraneModel
+from bubble_rt.estimation.membrane import MembraneModel
 
 Status = Literal["solved", "max_iter_reached", "time_limit_reached", "non_finite_input"]
 

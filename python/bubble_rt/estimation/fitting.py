@@ -26,23 +26,23 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
-from .camera import Camera
-from .deformation import (
+from bubble_rt.camera import Camera
+from bubble_rt.estimation.deformation import (
     Reference,
     _neighbour_outliers,
     _neighbour_table,
     harmonic_fill,
     mesh_laplacian,
 )
-from .frames import FrameError
-from .mesh import Mesh, MeshGeometry
+from bubble_rt.frames import FrameError
+from bubble_rt.mesh import Mesh, MeshGeometry
 
 
 class _Surface:
     """The reference depth surface seen by the camera (hole-filled, bilinear)."""
 
     def __init__(self, depth: NDArray, camera: Camera, max_fill_level: int) -> None:
-        from . import _core
+        from bubble_rt import _core
 
         filled, level = _core._fill_depth(np.ascontiguousarray(depth, dtype=np.float32), 4)
         self.filled = np.asarray(filled, dtype=np.float64)

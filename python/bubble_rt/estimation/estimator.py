@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bubble_rt import _validate
-from bubble_rt.membrane import Material, MembraneModel
+from bubble_rt.estimation.membrane import Material, MembraneModel
+from bubble_rt.estimation.solver import GroupLassoSolver, SolverInfo, SolverSettings
 from bubble_rt.mesh import Mesh
-from bubble_rt.solver import GroupLassoSolver, SolverInfo, SolverSettings
 
 
 @dataclass(frozen=True)
@@ -184,7 +184,7 @@ def make_estimator(
     if kind == "fem":
         return ForceEstimator(mesh, config)
     if kind == "frictionless":
-        from bubble_rt.baseline import FrictionlessEstimator  # type: ignore[import-not-found]
+        from bubble_rt.estimation.baseline import FrictionlessEstimator  # type: ignore[import-not-found]
 
         return FrictionlessEstimator(mesh, camera, reference, config)
     raise ValueError(f"unknown estimator kind {kind!r}; choose 'fem' or 'frictionless'")

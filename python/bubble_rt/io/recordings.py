@@ -23,7 +23,7 @@ Punyo layout (the public implementation's recordings, e.g. ../shared/data/punyo-
   from the cloud with a paraboloid dome model was tried and rejected: the inflated shape is
   not a paraboloid and the fit drifts by several mm and degrees even on the public mesh.
   On top of that the in-plane placement is derived from the data when the recording is opened
-  (:func:`bubble_rt.fitting.centre_pose` on frame 0): the apex of a quadratic fitted to the
+  (:func:`bubble_rt.estimation.fitting.centre_pose` on frame 0): the apex of a quadratic fitted to the
   top of the observed dome is moved over the footprint centre and its long axis onto mesh x
   (on the demo recording a correction of about 0.3 mm and under a degree). Pass ``pose=`` to
   :func:`open_recording` for another sensor.
@@ -51,8 +51,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera
-from .frames import Frame, FrameError
+from bubble_rt.camera import Camera
+from bubble_rt.frames import Frame, FrameError
 
 #: The public implementation's mesh frame is the camera frame rotated 25 degrees about the
 #: camera's y axis with the rim plane at z = 0.054 m; the footprint centre sits at x = 0.04025
@@ -180,7 +180,7 @@ class PunyoRecording(Recording):
         #: "centred" when the in-plane placement was derived from the data, else why not.
         self.placement = "given pose" if pose is not None else "punyo_pose"
         if centre_from_data:
-            from .fitting import centre_pose
+            from bubble_rt.estimation.fitting import centre_pose
 
             # In-plane placement from the data: the observed dome's apex over the footprint
             # centre, its long axis along x (the rim plane itself stays punyo_pose's).

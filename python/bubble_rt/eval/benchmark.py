@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from bubble_rt.evaluation import (
+from bubble_rt.eval import (
     SimTrajectory,
     contact_iou,
     estimator_config,
@@ -113,7 +113,7 @@ class RunStats:
 
 def _resolve_methods(methods: Sequence[str]) -> tuple[str, ...]:
     """Names with "default" replaced by FlowSettings().method, duplicates dropped."""
-    from bubble_rt.deformation import FlowSettings
+    from bubble_rt.estimation.deformation import FlowSettings
 
     out: list[str] = []
     for m in methods:
@@ -124,7 +124,7 @@ def _resolve_methods(methods: Sequence[str]) -> tuple[str, ...]:
 
 
 def _flow_settings(method: str, scale: float | None = None) -> Any:
-    from bubble_rt.deformation import FlowSettings
+    from bubble_rt.estimation.deformation import FlowSettings
 
     s = FlowSettings() if method == "default" else FlowSettings(method=method)
     if scale is not None:
@@ -155,8 +155,8 @@ def run_product(
 ) -> RunStats:
     """Time ForceEstimator.process on ``frames[warmup:]`` after ``warmup`` untimed frames
     (``gt_masks`` aligned with ``frames``)."""
-    from bubble_rt.deformation import DeformationTracker, Reference
-    from bubble_rt.estimator import ForceEstimator
+    from bubble_rt.estimation.deformation import DeformationTracker, Reference
+    from bubble_rt.estimation.estimator import ForceEstimator
 
     reference = Reference.capture(traj.reference_frames)
     est = ForceEstimator(mesh, config)
@@ -193,7 +193,7 @@ def run_reference(
 ) -> RunStats:
     """Time bubble_rt.reference.ReferencePipeline on ``frames[warmup:]`` (``gt_masks`` aligned
     with ``frames``); the warm-up frames run untimed (CVXPY compiles its problem on the first)."""
-    from bubble_rt.deformation import Reference
+    from bubble_rt.estimation.deformation import Reference
     from bubble_rt.reference import ReferencePipeline
 
     reference = Reference.capture(traj.reference_frames)

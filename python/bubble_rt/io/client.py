@@ -1,9 +1,9 @@
 """Client side of the bubble_rt protocol: a frame :class:`Subscriber` and a :class:`Controller`.
 
-Needs only pyzmq, NumPy and the generated protocol (``bubble_rt.protocol``); it never imports
+Needs only pyzmq, NumPy and the generated protocol (``bubble_rt.io.protocol``); it never imports
 the estimator or the C++ core, so it runs anywhere the wheel installs.
 
-    from bubble_rt.client import Subscriber
+    from bubble_rt.io.client import Subscriber
     with Subscriber("tcp://127.0.0.1:5555") as sub:
         print(sub.mesh.n_nodes)
         for frame in sub.frames(count=10):
@@ -18,8 +18,8 @@ from typing import Any
 
 import zmq
 
-from bubble_rt import protocol
-from bubble_rt.protocol import ForceFrameData, MeshData, StatusData
+from bubble_rt.io import protocol
+from bubble_rt.io.protocol import ForceFrameData, MeshData, StatusData
 
 DEFAULT_PUB = "tcp://127.0.0.1:5555"
 DEFAULT_CONTROL = "tcp://127.0.0.1:5556"

@@ -34,8 +34,8 @@ import numpy as np
 
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
+from bubble_rt.io.protocol import pb
 from bubble_rt.proto_gen.bubble_rt.v1 import foxglove_raw_image_pb2 as _fox
-from bubble_rt.protocol import pb
 
 fox: Any = _fox
 

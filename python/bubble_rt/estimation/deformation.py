@@ -22,9 +22,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from .camera import Camera
-from .frames import Frame, FrameError
-from .mesh import Mesh
+from bubble_rt.camera import Camera
+from bubble_rt.frames import Frame, FrameError
+from bubble_rt.mesh import Mesh
 
 FLOW_METHODS = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy", "oracle")
 _DIS_PRESETS = {"dis_ultrafast": 0, "dis_fast": 1, "dis_medium": 2}
@@ -304,7 +304,7 @@ class DeformationTracker:
 
     def set_reference(self, reference: Reference) -> None:
         """Measure against a new reference from now on (tare); mesh and camera stay."""
-        from . import _core
+        from bubble_rt import _core
 
         camera, s = self.camera, self.settings
         self.x_ref = np.array(self.mesh.vertices, dtype=np.float64)
@@ -474,7 +474,7 @@ def _lift(
     depth: NDArray, uv: NDArray, cam: Camera, max_fill_level: int, smoothing: int
 ) -> tuple[NDArray, NDArray]:
     """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
-    from . import _core
+    from bubble_rt import _core
 
     filled, level = _core._fill_depth(
         np.ascontiguousarray(depth, dtype=np.float32), smoothing, max_fill_level + 1

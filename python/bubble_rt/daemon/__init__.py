@@ -1,0 +1,1 @@
+"""The long-running service: capture sources, processing threads, ZeroMQ publishing and control."""

@@ -1,0 +1,261 @@
+"""Accuracy of the force/contact estimators against ground truth.
+
+Metrics (all per frame, aggregated per geometry and estimator):
+
+- Contact IoU over the estimator's mesh nodes: ``|est & gt| / |est | gt|``. A frame where neither
+  the estimate nor the ground truth has a contact node has no defined IoU and is left out of the
+  mean (mIoU = mean over frames with contact in the truth or in the estimate). A frame where only
+  one side has contact scores 0. Rim nodes take part like any other node (the estimator never
+  marks them, the truth rarely does).
+- Net-force error ``|f - f_gt|`` (N), with f the force the object applies on the membrane.
+- Normal and shear error: the error vector ``e = f - f_gt`` split along the contact normal
+  ``n_c`` (unit, pointing into the membrane, i.e. the direction an indenter pushes):
+  ``normal = |e . n_c|``, ``shear = |e - (e . n_c) n_c|``, so ``normal^2 + shear^2 = |e|^2``.
+  ``n_c`` is minus the area-weighted mean outward normal over the ground-truth contact nodes;
+  when the truth has no contact node, over the estimated contact nodes; when neither has any,
+  over all interior nodes (the dome's mean normal, about -z).
+- Light-touch detection rate: among frames whose ground truth is in contact with a net force
+  below 1.5 N, the fraction where the estimate marks at least one contact node.
+- False contacts: among untouched frames (no ground-truth contact node), the fraction where the
+  estimate marks any contact node; ``false_nodes`` is the mean number of such nodes.
+
+Force errors are averaged over all frames of a trajectory (untouched ones included), as the
+paper's table does; ``force_err_contact_n`` averages over in-contact frames only.
+
+Frames whose simulated ground truth did not converge (``truth.converged`` False: the physics
+step failed even in substeps) are still run through the estimators, so warm starts see the
+whole trajectory, but are left out of every statistic and counted in ``n_excluded``: a force
+the simulator itself flags as unreliable is no ground truth.
+
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+LIGHT_TOUCH_N = 1.5
+GEOMETRIES = ("round", "point", "line", "square", "split")
+ESTIMATORS = ("fem", "frictionless")
+
+
+# ---------------------------------------------------------------------------------- geometry
+def lumped_areas(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
+    """Lumped node areas (N,), m^2: one third of every incident triangle's area."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    a = np.zeros(len(v))
+    for k in range(3):
+        np.add.at(a, t[:, k], area / 3.0)
+    return a
+
+
+def vertex_normals(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
+    """Area-weighted outward unit normals (N x 3)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, t[:, k], cross)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(norm > 0, norm, 1.0)
+
+
+# ---------------------------------------------------------------------------------- metrics
+def contact_iou(estimate: NDArray[np.bool_], truth: NDArray[np.bool_]) -> float:
+    """IoU of two node masks; NaN when both are empty (the frame has no defined IoU)."""
+    e = np.asarray(estimate, dtype=bool)
+    g = np.asarray(truth, dtype=bool)
+    if e.shape != g.shape:
+        raise ValueError(f"contact masks differ in shape: {e.shape} vs {g.shape}")
+    union = int(np.count_nonzero(e | g))
+    if union == 0:
+        return float("nan")
+    return int(np.count_nonzero(e & g)) / union
+
+
+def contact_normal(
+    normals: NDArray[np.float64],
+    areas: NDArray[np.float64],
+    truth: NDArray[np.bool_],
+    estimate: NDArray[np.bool_] | None = None,
+    interior: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
+    """Unit contact normal (3,) pointing into the membrane (the direction an indenter pushes).
+
+    Minus the area-weighted mean outward normal over the ground-truth contact nodes; falls back
+    to the estimated contact nodes, then to all interior nodes (see the module docstring).
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    a = np.asarray(areas, dtype=np.float64)
+    candidates = [np.asarray(truth, dtype=bool)]
+    if estimate is not None:
+        candidates.append(np.asarray(estimate, dtype=bool))
+    candidates.append(
+        np.ones(len(n), bool) if interior is None else np.asarray(interior, dtype=bool)
+    )
+    for mask in candidates:
+        if mask.any():
+            m = -(a[mask, None] * n[mask]).sum(axis=0)
+            norm = float(np.linalg.norm(m))
+            if norm > 0:
+                return m / norm
+    return np.array([0.0, 0.0, -1.0])
+
+
+def split_force_error(
+    f_est: NDArray[np.float64], f_gt: NDArray[np.float64], normal: NDArray[np.float64]
+) -> tuple[float, float, float]:
+    """(total, normal, shear) magnitudes (N) of ``f_est - f_gt`` w.r.t. the unit ``normal``."""
+    e = np.asarray(f_est, dtype=np.float64) - np.asarray(f_gt, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    en = float(e @ n)
+    shear = e - en * n
+    return float(np.linalg.norm(e)), abs(en), float(np.linalg.norm(shear))
+
+
+@dataclass
+class FrameMetrics:
+    """Per-frame evaluation record (forces in N, time in ms)."""
+
+    geometry: str
+    estimator: str
+    trajectory: int
+    frame: int
+    iou: float
+    force_err_n: float
+    normal_err_n: float
+    shear_err_n: float
+    f_est: list[float]
+    f_gt: list[float]
+    gt_contact: bool
+    est_contact: bool
+    gt_nodes: int
+    est_nodes: int
+    false_nodes: int
+    time_ms: float = float("nan")
+    truth_converged: bool = True
+
+
+def frame_metrics(
+    *,
+    geometry: str,
+    estimator: str,
+    trajectory: int,
+    frame: int,
+    f_est: NDArray[np.float64],
+    f_gt: NDArray[np.float64],
+    est_contact: NDArray[np.bool_],
+    gt_contact: NDArray[np.bool_],
+    normals: NDArray[np.float64],
+    areas: NDArray[np.float64],
+    interior: NDArray[np.bool_] | None = None,
+    time_ms: float = float("nan"),
+    truth_converged: bool = True,
+) -> FrameMetrics:
+    """All per-frame metrics for one estimate against its ground truth."""
+    e = np.asarray(est_contact, dtype=bool)
+    g = np.asarray(gt_contact, dtype=bool)
+    n_c = contact_normal(normals, areas, g, e, interior)
+    total, normal, shear = split_force_error(f_est, f_gt, n_c)
+    return FrameMetrics(
+        geometry=geometry,
+        estimator=estimator,
+        trajectory=int(trajectory),
+        frame=int(frame),
+        iou=contact_iou(e, g),
+        force_err_n=total,
+        normal_err_n=normal,
+        shear_err_n=shear,
+        f_est=[float(x) for x in np.asarray(f_est, dtype=float)],
+        f_gt=[float(x) for x in np.asarray(f_gt, dtype=float)],
+        gt_contact=bool(g.any()),
+        est_contact=bool(e.any()),
+        gt_nodes=int(g.sum()),
+        est_nodes=int(e.sum()),
+        false_nodes=int(np.count_nonzero(e & ~g)),
+        time_ms=float(time_ms),
+        truth_converged=bool(truth_converged),
+    )
+
+
+def _nanmean(values: Iterable[float]) -> float:
+    arr = np.asarray([v for v in values if not math.isnan(v)], dtype=float)
+    return float(arr.mean()) if arr.size else float("nan")
+
+
+def aggregate(records: Sequence[FrameMetrics]) -> dict[str, float]:
+    """Summary statistics of a group of frame records (see the module docstring)."""
+    recs = [r for r in records if r.truth_converged]
+    n_excluded = len(records) - len(recs)
+    light = [r for r in recs if r.gt_contact and float(np.linalg.norm(r.f_gt)) < LIGHT_TOUCH_N]
+    untouched = [r for r in recs if not r.gt_contact]
+    contact = [r for r in recs if r.gt_contact]
+    return {
+        "miou": _nanmean(r.iou for r in recs),
+        "force_err_n": _nanmean(r.force_err_n for r in recs),
+        "normal_err_n": _nanmean(r.normal_err_n for r in recs),
+        "shear_err_n": _nanmean(r.shear_err_n for r in recs),
+        "force_err_contact_n": _nanmean(r.force_err_n for r in contact),
+        "light_touch_rate": (
+            sum(r.est_contact for r in light) / len(light) if light else float("nan")
+        ),
+        "false_contact_rate": (
+            sum(r.est_contact for r in untouched) / len(untouched) if untouched else float("nan")
+        ),
+        "false_nodes": _nanmean(float(r.false_nodes) for r in untouched),
+        "time_ms": _nanmean(r.time_ms for r in recs),
+        "n_frames": float(len(recs)),
+        "n_light": float(len(light)),
+        "n_untouched": float(len(untouched)),
+        "n_excluded": float(n_excluded),
+    }
+
+
+SUMMARY_KEYS = (
+    "miou",
+    "force_err_n",
+    "normal_err_n",
+    "shear_err_n",
+    "force_err_contact_n",
+    "light_touch_rate",
+    "false_contact_rate",
+    "false_nodes",
+    "time_ms",
+)
+
+
+def summarize(records: Sequence[FrameMetrics]) -> dict[str, Any]:
+    """``{"geometries": {g: {est: stats}}, "average": {est: stats}}``.
+
+    The average is the unweighted mean over geometries of each statistic (as the paper's table),
+    ignoring geometries where a statistic is undefined.
+    """
+    geoms: dict[str, dict[str, dict[str, float]]] = {}
+    order_g = [g for g in GEOMETRIES if any(r.geometry == g for r in records)]
+    order_g += sorted({r.geometry for r in records} - set(order_g))
+    order_e = [e for e in ESTIMATORS if any(r.estimator == e for r in records)]
+    order_e += sorted({r.estimator for r in records} - set(order_e))
+    for g in order_g:
+        geoms[g] = {}
+        for e in order_e:
+            sel = [r for r in records if r.geometry == g and r.estimator == e]
+            if sel:
+                geoms[g][e] = aggregate(sel)
+    average: dict[str, dict[str, float]] = {}
+    for e in order_e:
+        per = [geoms[g][e] for g in geoms if e in geoms[g]]
+        stats = {k: _nanmean(p[k] for p in per) for k in SUMMARY_KEYS}
+        stats["n_frames"] = float(sum(p["n_frames"] for p in per))
+        stats["n_excluded"] = float(sum(p["n_excluded"] for p in per))
+        average[e] = stats
+    return {"geometries": geoms, "average": average}

@@ -1,0 +1,389 @@
+"""Evaluation tasks: simulated trajectories run through each estimator, and recordings."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bubble_rt.eval.fanout import run_tasks
+from bubble_rt.eval.metrics import (
+    ESTIMATORS,
+    FrameMetrics,
+    frame_metrics,
+    lumped_areas,
+    summarize,
+    vertex_normals,
+)
+
+#: Seeds for evaluation trajectories start here; calibration uses seeds below it.
+EVAL_SEED_BASE = 100_000
+CALIB_SEED_BASE = 1_000
+
+
+# ---------------------------------------------------------------------------------- tasks
+@dataclass(frozen=True)
+class EvalTask:
+    """One simulated trajectory to evaluate (plain data, picklable).
+
+    Attributes:
+        geometry: indenter name (round, point, line, square, split).
+        seed: the dataset's master seed (EVAL_SEED_BASE; calibration uses CALIB_SEED_BASE, so
+            the two sets never share a trajectory).
+        trajectory: index within its geometry (the dataset scene "<geometry>-<trajectory>").
+        n_frames: frames per trajectory.
+        mesh: estimator mesh preset name or node count.
+        estimators: which estimators to run.
+        flow_method: FlowSettings.method for the deformation tracker ("oracle" skips rendering).
+        config: estimator overrides (k_f, k_u, E) as plain floats.
+        keep_fields: keep per-node fields of these frame indices (for figures).
+        n_reference: untouched frames averaged into the reference capture.
+        physics: simulator physics backend (None: the real one; tests pass a stand-in).
+    """
+
+    geometry: str
+    seed: int
+    trajectory: int = 0
+    n_frames: int = 20
+    mesh: str = "medium"
+    estimators: tuple[str, ...] = ESTIMATORS
+    flow_method: str = "default"
+    config: tuple[tuple[str, float], ...] = ()
+    keep_fields: tuple[int, ...] = ()
+    n_reference: int = 5
+    physics: Any = None
+
+
+@dataclass
+class TrajectoryResult:
+    """What one EvalTask produced: per-frame metrics and optional fields for figures."""
+
+    task: EvalTask
+    records: list[FrameMetrics]
+    seconds: float
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) -> Any:
+    """An EstimatorConfig with k_f, k_u, k_const, k_linear and material E overridden."""
+    from dataclasses import replace
+
+    from bubble_rt.estimation.estimator import EstimatorConfig
+
+    cfg = EstimatorConfig()
+    ov = dict(overrides)
+    if "E" in ov:
+        cfg = replace(cfg, material=replace(cfg.material, E=float(ov.pop("E"))))
+    known: dict[str, Any] = {
+        k: float(v) for k, v in ov.items() if k in ("k_f", "k_u", "k_const", "k_linear")
+    }
+    return replace(cfg, **known) if known else cfg
+
+
+def load_config_overrides(path: str | Path | None) -> dict[str, float]:
+    """Read [estimator] k_f, k_u, youngs_modulus (or E), k_const, k_linear from a TOML file
+    (the daemon's config or `bubble-rt calibrate`'s output); {} when no path is given."""
+    if not path:
+        return {}
+    import tomllib
+
+    data = tomllib.loads(Path(path).read_text())
+    est = data.get("estimator", {})
+    out: dict[str, float] = {}
+    for k in ("k_f", "k_u", "k_const", "k_linear", "E"):
+        if k in est:
+            out[k] = float(est[k])
+    if "youngs_modulus" in est:  # the daemon config's name for E
+        out["E"] = float(est["youngs_modulus"])
+    mat = est.get("material", {})
+    if isinstance(mat, dict) and "E" in mat:
+        out["E"] = float(mat["E"])
+    return out
+
+
+def make_tasks(
+    geometries: Sequence[str],
+    trajectories: int,
+    frames: int,
+    *,
+    seed_base: int = EVAL_SEED_BASE,
+    **kw: Any,
+) -> list[EvalTask]:
+    """Tasks for ``trajectories`` trajectories per geometry with disjoint seeds."""
+    tasks = []
+    for g in geometries:
+        for k in range(trajectories):
+            tasks.append(
+                EvalTask(
+                    geometry=g,
+                    seed=seed_base,
+                    trajectory=k,
+                    n_frames=frames,
+                    **kw,
+                )
+            )
+    return tasks
+
+
+@dataclass
+class SimTrajectory:
+    """A simulated trajectory: untouched reference frames, then the frames to evaluate."""
+
+    frames: list[Any]
+    reference_frames: list[Any]
+    camera: Any
+    reference_surface: Any = None
+
+
+def trajectory_scene(geometry: str, trajectory: int, n_frames: int, seed: int) -> Any:
+    """Scene of trajectory ``trajectory`` of ``geometry`` in the paper's dataset procedure
+    (bubble_rt.sim.dataset) with master seed ``seed``."""
+    from bubble_rt.sim.dataset import DatasetSettings, dataset_scenes
+
+    st = DatasetSettings(per_indenter=trajectory + 1, frames=n_frames, seed=seed)
+    name = f"{geometry}-{trajectory}"
+    for scene in dataset_scenes(st):
+        if scene.name == name:
+            return scene
+    raise ValueError(f"no trajectory {name!r} in the dataset (unknown indenter {geometry!r}?)")
+
+
+def simulate_trajectory(
+    geometry: str,
+    trajectory: int,
+    n_frames: int,
+    seed: int,
+    *,
+    n_reference: int = 5,
+    render: bool = True,
+    physics: Any = None,
+) -> SimTrajectory:
+    """Simulate one dataset trajectory: reference frames and the trajectory's frames.
+
+    ``render=False`` adds the simulator's "oracle" effect (no images; the deformation tracker's
+    "oracle" method reads the truth's displacement field instead), dropping image effects.
+    ``physics``: a simulator physics backend (default: the real one; tests pass a stand-in).
+    """
+    from dataclasses import replace
+
+    from bubble_rt.sim.simulator import Simulator
+
+    scene = trajectory_scene(geometry, trajectory, n_frames, seed)
+    if not render:
+        image_effects = {"depth_noise", "depth_dropouts", "rgb_noise", "rgb_blur", "exposure"}
+        kept = tuple(e for e in scene.effects if e[0] not in image_effects)
+        scene = replace(scene, effects=kept + (("oracle", ()),))
+    sim = Simulator(scene, physics=physics)
+    refs = sim.reference_frames(n_reference)
+    frames = list(sim.frames())
+    return SimTrajectory(frames=frames, reference_frames=refs, camera=sim.camera)
+
+
+def estimator_mesh(name: str, traj: SimTrajectory) -> Any:
+    """The estimator mesh: the preset fitted onto the reference surface seen by the camera."""
+    from bubble_rt.mesh import Mesh
+
+    template = Mesh.preset(name) if not str(name).isdigit() else Mesh.generate(int(name))
+    if traj.reference_frames and traj.reference_frames[0].depth is not None:
+        from bubble_rt.estimation.deformation import Reference
+        from bubble_rt.estimation.fitting import fit_mesh
+
+        return fit_mesh(template, Reference.capture(traj.reference_frames), traj.camera)
+    return template
+
+
+def build_estimator(
+    kind: str, mesh: Any, traj: SimTrajectory, config: Any, flow_method: str = "default"
+) -> Any:
+    """An estimator with ``.process(frame)`` for this trajectory's camera and reference."""
+    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
+    from bubble_rt.estimation.estimator import make_estimator
+
+    reference = Reference.capture(traj.reference_frames)
+    est = make_estimator(kind, mesh, config, camera=traj.camera, reference=reference)
+    if kind == "fem":
+        settings = FlowSettings() if flow_method == "default" else FlowSettings(method=flow_method)
+        est.attach(DeformationTracker(mesh, traj.camera, reference, settings))
+    return est
+
+
+def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
+    """Simulate one trajectory, run each estimator on every frame, score against the truth."""
+    t0 = time.perf_counter()
+    traj = simulate_trajectory(
+        task.geometry,
+        task.trajectory,
+        task.n_frames,
+        task.seed,
+        n_reference=task.n_reference,
+        # the frictionless baseline always needs depth images, so render even for "oracle"
+        render=task.flow_method != "oracle" or any(e != "fem" for e in task.estimators),
+        physics=task.physics,
+    )
+    mesh = estimator_mesh(task.mesh, traj)
+    areas = lumped_areas(mesh.vertices, mesh.triangles)
+    normals = vertex_normals(mesh.vertices, mesh.triangles)
+    interior = np.ones(mesh.n_nodes, bool)
+    interior[mesh.boundary] = False
+    gt_masks = [np.asarray(f.truth.contact_mask(mesh), dtype=bool) for f in traj.frames]
+    config = estimator_config(task.config)
+    records: list[FrameMetrics] = []
+    fields: dict[str, Any] = {
+        "vertices": mesh.vertices,
+        "triangles": mesh.triangles,
+        "boundary": mesh.boundary,
+    }
+    for name in task.estimators:
+        est = build_estimator(name, mesh, traj, config, task.flow_method)
+        for i, frame in enumerate(traj.frames):
+            ts = time.perf_counter()
+            e = est.process(frame)
+            ms = 1e3 * (time.perf_counter() - ts)
+            f_gt = np.asarray(frame.truth.net_force, dtype=float)
+            records.append(
+                frame_metrics(
+                    geometry=task.geometry,
+                    estimator=name,
+                    trajectory=task.trajectory,
+                    frame=i,
+                    f_est=np.asarray(e.net_force, dtype=float),
+                    f_gt=f_gt,
+                    est_contact=np.asarray(e.contact, dtype=bool),
+                    gt_contact=gt_masks[i],
+                    normals=normals,
+                    areas=areas,
+                    interior=interior,
+                    time_ms=ms,
+                    truth_converged=bool(getattr(frame.truth, "converged", True)),
+                )
+            )
+            if i in task.keep_fields:
+                fields.setdefault("frames", {}).setdefault(i, {})[name] = {
+                    "node_forces": np.asarray(e.node_forces, dtype=float),
+                    "contact": np.asarray(e.contact, dtype=bool),
+                    "gt_contact": gt_masks[i],
+                }
+    return TrajectoryResult(task, records, time.perf_counter() - t0, fields)
+
+
+# ---------------------------------------------------------------------------------- driver
+def run_eval(
+    tasks: Sequence[EvalTask],
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> tuple[list[TrajectoryResult], dict[str, Any]]:
+    """Evaluate all tasks; returns the trajectory results and the summary (with throughput)."""
+    t0 = time.perf_counter()
+    results = run_tasks(
+        evaluate_trajectory,
+        tasks,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc="eval",
+    )
+    wall = time.perf_counter() - t0
+    records = [rec for r in results for rec in r.records]
+    summary = summarize(records)
+    n_frames = sum(t.n_frames for t in tasks)
+    busy = sum(r.seconds for r in results)
+    summary["throughput"] = {
+        "frames": n_frames,
+        "wall_s": wall,
+        "frames_per_s": n_frames / wall if wall > 0 else float("nan"),
+        "frames_per_s_per_worker": n_frames / busy if busy > 0 else float("nan"),
+        "workers": workers if not scheduler else None,
+        "scheduler": scheduler,
+    }
+    return list(results), summary
+
+
+QUICK_FRAMES = 8
+
+
+# ---------------------------------------------------------------------------------- recordings
+def evaluate_recording(
+    path: str | Path,
+    *,
+    overrides: dict[str, float] | None = None,
+    estimators: Sequence[str] = ("fem",),
+    mesh: str = "medium",
+    n_reference: int = 5,
+    force_threshold: float = 1.0,
+    max_frames: int | None = None,
+) -> dict[str, Any]:
+    """Net-force magnitude error and contact detection on a real recording with a wrench.
+
+    The wrench is in the arm's frame, so only magnitudes are compared:
+    ``| |f_net| - |w_f - bias| |`` with ``bias`` the mean wrench force over the first
+    ``n_reference`` frames (which are also the untouched reference and are not scored). A frame
+    counts as touched when ``|w_f - bias| > force_threshold`` (N); the estimate detects contact
+    when it marks any contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
+    false-contact rate on untouched frames, per estimator.
+    """
+    from bubble_rt.estimation.deformation import Reference
+    from bubble_rt.estimation.fitting import fit_mesh
+    from bubble_rt.io.recordings import open_recording
+    from bubble_rt.mesh import Mesh
+
+    rec = open_recording(path)
+    frames = list(rec)
+    if max_frames:
+        frames = frames[:max_frames]
+    if len(frames) <= n_reference:
+        n_reference = max(1, len(frames) // 2)
+    ref_frames = frames[:n_reference]
+    reference = Reference.capture(ref_frames)
+    template = Mesh.preset(mesh) if not str(mesh).isdigit() else Mesh.generate(int(mesh))
+    fitted = fit_mesh(template, reference, rec.camera)
+    wrenches = [f.wrench for f in frames]
+    if any(w is None for w in wrenches):
+        raise ValueError(f"{path}: recording has frames without a wrench")
+    W = np.asarray(wrenches, dtype=float)[:, :3]
+    bias = W[:n_reference].mean(axis=0)
+    scored = frames[n_reference:] if len(frames) > n_reference else frames
+    f_gt = np.linalg.norm(W - bias, axis=1)[len(frames) - len(scored) :]
+    touched = f_gt > force_threshold
+    config = estimator_config(overrides or {})
+    out: dict[str, Any] = {
+        "recording": str(path),
+        "frames": len(scored),
+        "reference_frames": n_reference,
+        "force_threshold_n": force_threshold,
+        "touched_frames": int(touched.sum()),
+        "estimators": {},
+    }
+    traj = SimTrajectory(frames=frames, reference_frames=ref_frames, camera=rec.camera)
+    for name in estimators:
+        est = build_estimator(name, fitted, traj, config)
+        mags, det, ms = [], [], []
+        for fr in scored:
+            t0 = time.perf_counter()
+            e = est.process(fr)
+            ms.append(1e3 * (time.perf_counter() - t0))
+            mags.append(float(np.linalg.norm(e.net_force)))
+            det.append(bool(np.asarray(e.contact).any()))
+        m = np.asarray(mags)
+        d = np.asarray(det)
+        err = np.abs(m - f_gt)
+        tp = int((d & touched).sum())
+        fp = int((d & ~touched).sum())
+        fn = int((~d & touched).sum())
+        out["estimators"][name] = {
+            "force_mag_err_n": float(err.mean()),
+            "force_mag_err_median_n": float(np.median(err)),
+            "force_mag_err_touched_n": float(err[touched].mean()) if touched.any() else None,
+            "accuracy": float((d == touched).mean()),
+            "precision": tp / (tp + fp) if tp + fp else None,
+            "recall": tp / (tp + fn) if tp + fn else None,
+            "false_contact_rate": float(d[~touched].mean()) if (~touched).any() else None,
+            "mean_force_n": float(m.mean()),
+            "time_ms": float(np.median(ms)),
+        }
+    return out
