@@ -16,6 +16,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trajectories", type=int, default=None, help="per indenter (default 4; quick 2)"
     )
     p.add_argument("--frames", type=int, default=None, help="per trajectory (default 20; quick 8)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="master seed of the simulated trajectories (default 100000; calibration draws from "
+        "1000 up, so any other seed gives trajectories nobody tuned on)",
+    )
     p.add_argument("--geometries", default="round,point,line,square,split")
     p.add_argument("--estimators", default="fem,frictionless")
     p.add_argument("--mesh", default="medium", help="estimator mesh: coarse|medium|fine|<nodes>")
@@ -71,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         estimators=estimators,
         flow_method=args.flow,
         config=tuple(sorted(overrides.items())),
+        seed_base=ev.EVAL_SEED_BASE if args.seed is None else args.seed,
     )
     if args.figures:
         # per-node fields only for each indenter's first light and heavy trajectories
@@ -99,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
             "flow": args.flow,
             "config": overrides,
             "geometries": geoms,
+            "seed": tasks[0].seed if tasks else None,
         }
         payload["frames"] = [ev.records_to_json(r.records) for r in results]
         ev.write_json(args.json, payload)
