@@ -1,5 +1,4 @@
 // Private bindings for the RGBD deformation stage (use bubble_rt.deformation instead).
-// bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
 #include <pybind11/eigen.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>

@@ -17,8 +17,6 @@ using bubble::bindings::map_n;
 using bubble::bindings::map_n3;
 
 void bind_membrane(py::module_& m) {
-  py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
-
   py::class_<bubble::MembraneModel>(m, "_Membrane")
       .def(py::init([](const ArrD& v, const ArrI& t, double E, double nu, double th) {
              auto V = map_n3(v, "vertices");

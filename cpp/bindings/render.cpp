@@ -60,7 +60,6 @@ py::tuple render(const ArrDCast& vertices, const IArr& triangles, const ArrDCast
 }  // namespace
 
 void bind_render(py::module_& m) {
-  // bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
   m.def("render_mesh", &render, py::arg("vertices"), py::arg("triangles"), py::arg("texcoords"),
         py::arg("texture"), py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"),
         py::arg("width"), py::arg("height"), py::arg("rgb") = true, py::arg("shading") = true,
