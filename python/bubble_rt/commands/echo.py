@@ -37,16 +37,36 @@ class RateMeter:
         return (len(self.times) - 1) / ((self.times[-1] - self.times[0]) / 1e9)
 
 
-def format_line(frame: Any, rate_hz: float, state: str) -> str:
-    """``seq  rate  latency  net force  |F|  contact nodes/patches  state`` (N, ms, Hz)."""
-    f = frame.net_force
+def _vec(f: Any) -> tuple[float, float, float, float]:
     fx, fy, fz = (float(f[0]), float(f[1]), float(f[2])) if len(f) == 3 else (0.0, 0.0, 0.0)
-    mag = (fx * fx + fy * fy + fz * fz) ** 0.5
+    return fx, fy, fz, (fx * fx + fy * fy + fz * fz) ** 0.5
+
+
+def format_line(frame: Any, rate_hz: float, state: str) -> str:
+    """``seq  rate  latency  net force  |F|  contact nodes/patches  state`` (N, ms, Hz).
+
+    A frame with simulation truth (``has_truth``: simulated sources only) gets the truth
+    beside the estimate: ``| true F [..] N |F| .. N contact .. nodes IoU ..`` (IoU of the
+    estimated contact nodes against the true ones, "-" when neither has any).
+    """
+    fx, fy, fz, mag = _vec(frame.net_force)
     flag = " DEGRADED: " + "; ".join(frame.degraded_reasons) if frame.degraded else ""
+    truth = ""
+    if getattr(frame, "has_truth", False):
+        from bubble_rt.io.protocol import truth_summary
+
+        tx, ty, tz, tmag = _vec(frame.true_net_force)
+        ts = truth_summary(frame)
+        iou = "-" if ts["contact_iou"] is None else f"{ts['contact_iou']:.2f}"
+        truth = (
+            f"| true F [{tx:+7.3f} {ty:+7.3f} {tz:+7.3f}] N  |F| {tmag:6.3f} N  "
+            f"contact {ts['contact_nodes']:3d} nodes IoU {iou}  "
+        )
     return (
         f"#{frame.seq:<6d} {rate_hz:5.1f} Hz  lat {frame.latency_ms:6.1f} ms  "
         f"F [{fx:+7.3f} {fy:+7.3f} {fz:+7.3f}] N  |F| {mag:6.3f} N  "
-        f"contact {int(frame.contact.sum()):3d} nodes {len(frame.patches)} patch  {state}{flag}"
+        f"contact {int(frame.contact.sum()):3d} nodes {len(frame.patches)} patch  "
+        f"{truth}{state}{flag}"
     )
 
 

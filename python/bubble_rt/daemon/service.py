@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.sim_truth import attach_sim_truth
 from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
@@ -538,6 +539,7 @@ class Daemon:
                 valid_node_fraction=vf,
                 degraded_reasons=reasons,
             )
+            attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
         except Exception as exc:
             self._error("estimator", exc)
             return

@@ -11,7 +11,9 @@ topic                           schema                        content
 /bubble_rt/rgb                  foxglove.RawImage (rgb8)      colour image, sequence = frame idx
 /bubble_rt/depth                foxglove.RawImage (32FC1)     depth, metres (0 = invalid)
 /bubble_rt/pressure             bubble_rt.v1.PressureSample   pressure paired with the frame
-/bubble_rt/reference/{rgb,depth,pressure}                     the reference (untouched) frames
+/bubble_rt/wrench               bubble_rt.v1.WrenchSample     force/torque reading of the frame
+                                                              (when the frame has one)
+/bubble_rt/reference/{rgb,depth,pressure,wrench}              the reference (untouched) frames
 /bubble_rt/force                bubble_rt.v1.ForceFrame       estimator output
 /bubble_rt/status               bubble_rt.v1.Status           daemon status
 ==============================  ============================  =================================
@@ -47,6 +49,8 @@ TOPIC_PRESSURE = "/bubble_rt/pressure"
 TOPIC_REF_RGB = "/bubble_rt/reference/rgb"
 TOPIC_REF_DEPTH = "/bubble_rt/reference/depth"
 TOPIC_REF_PRESSURE = "/bubble_rt/reference/pressure"
+TOPIC_WRENCH = "/bubble_rt/wrench"
+TOPIC_REF_WRENCH = "/bubble_rt/reference/wrench"
 TOPIC_FORCE = "/bubble_rt/force"
 TOPIC_STATUS = "/bubble_rt/status"
 FRAME_ID = "bubble_rt_camera"
@@ -56,6 +60,7 @@ _TYPES: dict[str, Any] = {
     "bubble_rt.v1.CameraInfo": pb.CameraInfo,
     "bubble_rt.v1.Mesh": pb.Mesh,
     "bubble_rt.v1.PressureSample": pb.PressureSample,
+    "bubble_rt.v1.WrenchSample": pb.WrenchSample,
     "bubble_rt.v1.ForceFrame": pb.ForceFrame,
     "bubble_rt.v1.Status": pb.Status,
 }
@@ -201,6 +206,14 @@ class Recorder:
         if frame.depth is not None:
             depth = frame.depth
             self._put(topics[1], lambda: raw_image(depth, t), t, idx)
+        if frame.wrench is not None:  # before the pressure, which completes the frame
+            w = [float(x) for x in frame.wrench]
+            self._put(
+                TOPIC_REF_WRENCH if reference else TOPIC_WRENCH,
+                lambda: pb.WrenchSample(time_ns=_ns(t), frame_index=idx, force=w[:3], torque=w[3:]),
+                t,
+                idx,
+            )
         p = float(frame.pressure_pa)
         tp = frame.t_pressure if frame.t_pressure is not None else t
         self._put(
@@ -386,12 +399,15 @@ class McapRecording:
             if reference
             else (TOPIC_RGB, TOPIC_DEPTH, TOPIC_PRESSURE)
         )
+        wrench_t = TOPIC_REF_WRENCH if reference else TOPIC_WRENCH
         partial: dict[int, dict[str, Any]] = {}
         for topic, msg, log_ns, seq in iter_messages(self.path):
             if topic == rgb_t:
                 partial.setdefault(seq, {})["rgb"] = image_array(msg)
             elif topic == depth_t:
                 partial.setdefault(seq, {})["depth"] = image_array(msg)
+            elif topic == wrench_t:
+                partial.setdefault(seq, {})["wrench"] = list(msg.force) + list(msg.torque)
             elif topic == p_t:
                 parts = partial.pop(seq, {})
                 # Frames are written rgb, depth, pressure: older partial entries are orphans.
@@ -404,6 +420,7 @@ class McapRecording:
                     t=log_ns / 1e9,
                     t_pressure=msg.time_ns / 1e9,
                     index=int(msg.frame_index),
+                    wrench=parts.get("wrench"),
                 )
 
     def force_frames(self) -> Iterator[Any]:

@@ -175,6 +175,15 @@ class ForceFrameData:
     valid_node_fraction: float
     degraded: bool
     degraded_reasons: list[str] = field(default_factory=list)
+    #: Simulation truth (ForceFrame.sim_truth): the scene's true net force (3,) N and true
+    #: contact per mesh node (N,); None unless the frame came from the simulator.
+    true_net_force: NDArray[np.float64] | None = None
+    true_contact: NDArray[np.bool_] | None = None
+
+    @property
+    def has_truth(self) -> bool:
+        """True when the frame carries simulation truth (never for a real sensor)."""
+        return self.true_net_force is not None
 
     def summary(self) -> dict[str, Any]:
         """Plain-JSON summary (what `bubble-rt echo --json` prints)."""
@@ -200,7 +209,25 @@ class ForceFrameData:
             "solver": self.solver_status,
             "degraded": self.degraded,
             "degraded_reasons": list(self.degraded_reasons),
+            **({"sim_truth": truth_summary(self)} if self.has_truth else {}),
         }
+
+
+def truth_summary(frame: ForceFrameData) -> dict[str, Any]:
+    """The simulation truth of a decoded frame, plain JSON: true net force, its magnitude,
+    true contact nodes and the contact IoU of the estimate against it (None when neither has
+    a contact node)."""
+    t = np.asarray(frame.true_net_force, dtype=np.float64)
+    c = np.asarray(frame.true_contact if frame.true_contact is not None else [], dtype=bool)
+    est = np.asarray(frame.contact, dtype=bool)
+    union = int((c | est).sum()) if c.shape == est.shape else 0
+    iou = int((c & est).sum()) / union if union else None
+    return {
+        "net_force": [round(float(x), 5) for x in t],
+        "force_n": round(float(np.linalg.norm(t)), 5),
+        "contact_nodes": int(c.sum()),
+        "contact_iou": None if iou is None else round(iou, 4),
+    }
 
 
 def encode_force_frame(
@@ -256,6 +283,13 @@ def encode_force_frame(
     return msg
 
 
+def set_sim_truth(msg: Any, net_force: NDArray, contact: NDArray) -> None:
+    """Attach simulation truth to a ForceFrame: the scene's true net force (3,) N and true
+    contact per mesh node (N,). Only for frames from the simulator."""
+    msg.sim_truth.net_force.extend(_packed(net_force))
+    msg.sim_truth.contact = np.asarray(contact, dtype=np.uint8).ravel().tobytes()
+
+
 def stamp_publish(msg: Any, publish_time_ns: int) -> None:
     """Set the publish time and end-to-end latency (publish - capture) of a frame."""
     msg.publish_time_ns = int(publish_time_ns)
@@ -304,7 +338,20 @@ def decode_force_frame(payload: bytes | Any) -> ForceFrameData:
         valid_node_fraction=msg.valid_node_fraction,
         degraded=msg.degraded,
         degraded_reasons=list(msg.degraded_reasons),
+        **_decode_sim_truth(msg),
     )
+
+
+def _decode_sim_truth(msg: Any) -> dict[str, Any]:
+    if not msg.HasField("sim_truth"):
+        return {}
+    t = np.asarray(msg.sim_truth.net_force, dtype=np.float64)
+    if t.size != 3:
+        raise ProtocolError(f"ForceFrame.sim_truth.net_force must hold 3 values, got {t.size}")
+    return {
+        "true_net_force": t,
+        "true_contact": np.frombuffer(msg.sim_truth.contact, dtype=np.uint8).astype(bool),
+    }
 
 
 # ---------------------------------------------------------------------------------- status

@@ -285,12 +285,18 @@ class PngRecording(Recording):
 def open_recording(
     path: str | Path, pose: NDArray[np.float64] | None = None, centre_from_data: bool = True
 ) -> Recording:
-    """Open a recording folder, detecting its layout (Punyo .npy or PNG folder).
+    """Open a recording, detecting its layout (Punyo .npy, PNG folder or MCAP file).
 
     ``pose`` (4 x 4 camera -> mesh) overrides the Punyo layout's default :func:`punyo_pose`;
     ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout).
     """
     p = Path(path)
+    # ---- the project's own MCAP recordings (bubble_rt.io.mcap) ----
+    if p.suffix == ".mcap" and p.is_file():
+        from bubble_rt.io.mcap import McapRecording
+
+        return McapRecording(p)  # type: ignore[return-value]
+    # ---- end MCAP ----
     if not p.is_dir():
         raise FileNotFoundError(f"recording folder not found: {p}")
     if (p / "expand").is_dir():
