@@ -43,6 +43,19 @@ def with_wrench(
     return out
 
 
+def saturated_to_invalid(frames: list[Frame], max_depth_m: float = 0.5) -> list[Frame]:
+    """Depth beyond ``max_depth_m`` (the simulated camera's saturated 6.55 m) as invalid (0),
+    as the Punyo reader does, so every layout and the frames in memory hold the same data."""
+    out = []
+    for f in frames:
+        if f.depth is None:
+            out.append(f)
+            continue
+        d = np.where(f.depth < max_depth_m, f.depth, np.float32(0)).astype(np.float32)
+        out.append(replace(f, depth=d))
+    return out
+
+
 def deproject(depth: np.ndarray, camera: Camera) -> np.ndarray:
     """Organised (H*W x 3) camera-frame point cloud of a depth image (zeros where invalid)."""
     h, w = depth.shape

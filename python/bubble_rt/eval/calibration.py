@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -194,6 +194,16 @@ class CalibrationProblem:
         return float(sum(sum(p) for p in parts))
 
 
+class LossProblem(Protocol):
+    """What :func:`calibrate` minimises: :class:`CalibrationProblem`, or the recordings'
+    :class:`bubble_rt.eval.recording_calibration.RecordingProblem`."""
+
+    @property
+    def frames(self) -> Sequence[Any]: ...
+
+    def loss(self, params: dict[str, float], fan: FanOut | None = None) -> float: ...
+
+
 @dataclass
 class CalibrationResult:
     params: dict[str, float]
@@ -212,7 +222,7 @@ class CalibrationResult:
 
 
 def calibrate(
-    problem: CalibrationProblem,
+    problem: LossProblem,
     *,
     initial: dict[str, float] | None = None,
     method: str = "Nelder-Mead",
