@@ -39,6 +39,7 @@ def test_replay_of_real_recording_gives_no_force_without_contact(tmp_path):
         d.stop()
     # 20 frames: 5 make the reference, 15 are processed losslessly.
     assert len(frames) == 15 and mesh.n_nodes == 227
+    assert not any(f.has_truth for f in frames)  # a real sensor: no simulation truth
     for f in frames:
         assert np.all(np.isfinite(f.node_forces)) and np.all(np.isfinite(f.net_force))
         assert {"flow", "lift", "solve"} <= set(f.timings_ms)

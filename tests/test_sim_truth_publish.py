@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.commands.echo import format_line
+from bubble_rt.commands.echo import echo, format_line
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
 from bubble_rt.io.client import Subscriber
@@ -125,8 +125,13 @@ def test_daemon_on_simulated_scene_publishes_truth(tmp_path, monkeypatch):
     d = Daemon(cfg, processor_factory=FakeProcessor).start()
     try:
         frames = _collect(d, 6)
+        # What `serve --echo` runs: estimate and truth side by side on every line.
+        printed = io.StringIO()
+        assert echo(d.pub_address, d.control_address, count=3, timeout_s=60, out=printed) == 0
     finally:
         d.stop()
+    lines = printed.getvalue().splitlines()
+    assert len(lines) == 3 and all("| true F [" in ln for ln in lines)
     assert len(frames) == 6
     n = frames[0].node_forces.shape[0]
     for f in frames:
@@ -135,9 +140,6 @@ def test_daemon_on_simulated_scene_publishes_truth(tmp_path, monkeypatch):
     # The tiny scene presses into the dome: true forces point down (-z) and reach ~1.5 N.
     assert true_f[:, 2].min() < -0.5 and np.all(true_f[:, 2] <= 1e-6)
     assert any(f.true_contact.any() for f in frames if f.true_contact is not None)
-    out = io.StringIO()
-    out.write(format_line(frames[-1], 30.0, "running"))
-    assert "| true F" in out.getvalue()
     assert "sim_truth" in json.loads(json.dumps(frames[-1].summary()))
 
 
