@@ -135,6 +135,11 @@ def test_wrench_config_reads_rotation_and_names_bad_keys(tmp_path):
     bad.write_text("[wrench]\nrotation = [[1, 0, 0], [0, 2, 0], [0, 0, 1]]\n")
     with pytest.raises(rc.WrenchCalibrationError, match="wrench.rotation: not orthonormal"):
         rc.load_wrench_config(bad)
+    bad.write_text("[wrench]\nsign = 2\n")
+    with pytest.raises(rc.WrenchCalibrationError, match="wrench.sign must be 1 or -1"):
+        rc.load_wrench_config(bad)
+    bad.write_text("[wrench]\nsign = -1\n")
+    assert rc.load_wrench_config(bad) == {"sign": -1.0}
 
 
 def test_mcap_recording_round_trips_the_wrench(sim, tmp_path):
@@ -178,6 +183,24 @@ def test_contact_term_only_where_contact_truth_exists(sim):
     assert ev2.force_term == pytest.approx(ev.force_term, rel=1e-9)
     # ... and that force term is the truth calibration's (lambda2 = 0) loss on those frames.
     assert ev2.force_term == pytest.approx(sim.problems[0].loss(cal.DEFAULTS), rel=1e-6)
+
+
+def test_reaction_sign_is_declared_or_absorbed_by_a_given_improper_rotation(sim):
+    t = sim.trajs[1]
+    plain = with_wrench(list(t.reference_frames) + list(t.frames), R_TRUE, BIAS)
+    # An F/T sensor reporting the reaction: w = -R^T f + bias.
+    reaction = with_wrench(list(t.reference_frames) + list(t.frames), -R_TRUE, BIAS)
+    a = rc.frames_set("plain", plain[:N_REF], plain[N_REF:], t.camera, mesh=MESH)
+    b = rc.frames_set("reaction", reaction[:N_REF], reaction[N_REF:], t.camera, mesh=MESH)
+    want = rc.RecordingProblem([a], rotation=R_TRUE).evaluate(cal.DEFAULTS)
+    signed = rc.RecordingProblem([b], rotation=R_TRUE, sign=-1.0).evaluate(cal.DEFAULTS)
+    improper = rc.RecordingProblem([b], rotation=-R_TRUE).evaluate(cal.DEFAULTS)
+    assert signed.loss == pytest.approx(want.loss, rel=1e-9)
+    assert improper.loss == pytest.approx(want.loss, rel=1e-9)
+    # Fitted with the sign declared: the same rotation as without the sign flip.
+    fit_a = rc.RecordingProblem([a]).evaluate(cal.DEFAULTS).rotation
+    fit_b = rc.RecordingProblem([b], sign=-1.0).evaluate(cal.DEFAULTS).rotation
+    np.testing.assert_allclose(fit_b, fit_a, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------ recovery

@@ -48,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--wrench-config",
         default=None,
         metavar="FILE",
-        help="TOML with [wrench] rotation = 3 x 3 rows (F/T frame -> mesh frame); without it "
-        "the rotation is fitted jointly (Kabsch inside the loss)",
+        help="TOML with [wrench] rotation = 3 x 3 rows (F/T frame -> mesh frame; without it "
+        "the rotation is fitted jointly, Kabsch inside the loss), sign = -1 (the F/T sensor "
+        "reports the reaction), reference_frames = N",
     )
     g.add_argument("--max-frames", type=int, default=0, help="scored frames per recording (0: all)")
 
@@ -123,7 +124,7 @@ def run_recordings(args: argparse.Namespace) -> int:
     except rc.WrenchCalibrationError as exc:
         print(f"bubble-rt calibrate: {exc}", file=sys.stderr)
         return 2
-    problem = rc.RecordingProblem(sets, rotation=wcfg.get("rotation"))
+    problem = rc.RecordingProblem(sets, rotation=wcfg.get("rotation"), sign=wcfg.get("sign", 1.0))
     print(
         f"calibration set: {len(sets)} recordings, {len(problem.frames)} frames "
         f"({problem.contact_frames} with contact truth), {n_ref} reference frames each"

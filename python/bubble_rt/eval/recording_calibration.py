@@ -15,7 +15,9 @@ recorded wrench standing in for the simulator's net force::
   jointly: inside every loss evaluation, after the estimates, the proper rotation that best
   aligns the bias-free wrenches onto the estimated net forces (least squares, Kabsch) is
   used, so the optimiser sees the loss at the best rotation for those parameters. One
-  rotation for all recordings (one sensor on one mount);
+  rotation for all recordings (one sensor on one mount). A fitted rotation is proper; an F/T
+  sensor reporting the opposite sign (the reaction) is declared with ``[wrench] sign = -1``,
+  which negates ``w - b`` first (a given rotation may be improper and absorb the sign itself);
 * the contact term counts only frames with contact truth (simulated frames passed in memory,
   whose ``Frame.truth`` gives it on the mesh's nodes); real recordings have none and are
   scored on the force term alone.
@@ -115,8 +117,9 @@ def check_rotation(R: Any, where: str = "rotation") -> NDArray[np.float64]:
 
 def load_wrench_config(path: str | Path) -> dict[str, Any]:
     """Read a wrench configuration TOML: a ``[wrench]`` table with the optional keys
-    ``rotation`` (3 x 3 rows, F/T frame -> mesh frame; absent: fitted) and
-    ``reference_frames`` (int). Unknown keys or tables are errors naming the key."""
+    ``rotation`` (3 x 3 rows, F/T frame -> mesh frame; absent: fitted), ``sign`` (1 or -1:
+    -1 when the F/T sensor reports the reaction) and ``reference_frames`` (int). Unknown keys
+    or tables are errors naming the key."""
     p = Path(path)
     try:
         doc = tomllib.loads(p.read_text())
@@ -136,9 +139,13 @@ def load_wrench_config(path: str | Path) -> dict[str, Any]:
             if not isinstance(val, int) or val < 1:
                 raise WrenchCalibrationError(f"{p}: wrench.reference_frames must be an int >= 1")
             out["reference_frames"] = val
+        elif key == "sign":
+            if val not in (1, -1) or isinstance(val, bool):
+                raise WrenchCalibrationError(f"{p}: wrench.sign must be 1 or -1, got {val!r}")
+            out["sign"] = float(val)
         else:
             raise WrenchCalibrationError(
-                f"{p}: unknown key wrench.{key} (known: rotation, reference_frames)"
+                f"{p}: unknown key wrench.{key} (known: rotation, sign, reference_frames)"
             )
     return out
 
@@ -303,11 +310,13 @@ class Evaluation:
 class RecordingProblem:
     """Tracked recordings and the summed loss against their wrenches.
 
-    ``rotation``: F/T frame -> mesh frame, or None to fit it (Kabsch) in every evaluation.
+    ``rotation``: F/T frame -> mesh frame, or None to fit it (Kabsch) in every evaluation;
+    ``sign``: -1 negates the bias-free wrenches first (an F/T sensor reporting the reaction).
     """
 
     sets: list[RecordingSet]
     rotation: NDArray[np.float64] | None = None
+    sign: float = 1.0
     factory: Callable[[Any, dict[str, float]], Any] = fem_factory
     weights: LossWeights = LossWeights()
     k_const: float = 2000.0
@@ -348,7 +357,7 @@ class RecordingProblem:
         parts = fan.map(chunk_outputs, self.tasks(fan.parallelism, params))
         F = np.vstack([p[0] for p in parts]) if parts else np.zeros((0, 3))
         C = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0)
-        W = np.array([f.w for f in self.frames]).reshape(-1, 3)
+        W = self.sign * np.array([f.w for f in self.frames]).reshape(-1, 3)
         R = self.rotation if self.rotation is not None else kabsch(W, F)
         force = float(np.linalg.norm(F - W @ R.T, axis=1).sum())
         contact = float(np.nansum(C)) if np.any(np.isfinite(C)) else 0.0
