@@ -10,10 +10,12 @@ import time
 import numpy as np
 import pytest
 import zmq
-from bubble_rt.daemon.service import Daemon, DaemonError, PatchFinder, lumped_areas, validate_params
+from bubble_rt.daemon.control import validate_params
+from bubble_rt.daemon.processor import PatchFinder
+from bubble_rt.daemon.service import Daemon, DaemonError
 from bubble_rt.io import protocol
 from bubble_rt.io.client import ControlError, Controller, Subscriber
-from bubble_rt.mesh import Mesh
+from bubble_rt.mesh import Mesh, lumped_areas
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
 
 pytestmark = pytest.mark.timeout(60)

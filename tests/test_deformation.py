@@ -227,7 +227,9 @@ class _Truth:
 def test_oracle_uses_ground_truth_without_images():
     mesh = Mesh.preset("coarse")
     ref = Reference.capture(Frame(None, None, 1000.0))
-    tr = DeformationTracker(mesh, Camera.d405(), ref, FlowSettings(method="oracle"))
+    from bubble_rt.sim.oracle import OracleTracker
+
+    tr = OracleTracker(mesh, Camera.d405(), ref, FlowSettings(method="oracle"))
     d = tr.track(Frame(None, None, 1010.0, truth=_Truth()))
     expected = _Truth().displace(mesh.vertices) - mesh.vertices
     np.testing.assert_allclose(d.U, expected)
@@ -265,7 +267,7 @@ def test_reference_capture_averages_valid_depth_only():
     assert ref.depth[1, 1] == pytest.approx(0.10)
     assert ref.depth[2, 2] == pytest.approx(0.11)
     assert (ref.rgb == 15).all()
-    tared = ref.tare(Frame(rgb1, d1, 300.0))
+    tared = Reference.capture(Frame(rgb1, d1, 300.0))
     assert tared.pressure_pa == 300.0 and tared.n_frames == 1
 
 

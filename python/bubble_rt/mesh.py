@@ -79,7 +79,7 @@ class Mesh:
 
     vertices: NDArray[np.float64]
     triangles: NDArray[np.int32]
-    boundary: NDArray[np.int32] = field(default=None)  # type: ignore[assignment,arg-type]
+    boundary: NDArray[np.int32] = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=np.float64)

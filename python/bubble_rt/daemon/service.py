@@ -307,7 +307,7 @@ class Daemon:
         """Apply validated Params before the next solve; returns the new [estimator] section."""
         with self._state_lock:
             self._pending_params.update(params)
-            est = replace(self.config.estimator, **params)
+            est = replace(self.config.estimator, **params)  # type: ignore[arg-type]
             self.config = replace(self.config, estimator=est)
         return est
 

@@ -157,7 +157,7 @@ class Reference:
         if all(f.rgb is not None for f in frames):
             acc = np.zeros(frames[0].rgb.shape, np.float64)  # type: ignore[union-attr]
             for f in frames:
-                acc += f.rgb  # type: ignore[arg-type]
+                acc += f.rgb
             rgb = np.clip(np.rint(acc / len(frames)), 0, 255).astype(np.uint8)
         depth = None
         if all(f.depth is not None for f in frames):
@@ -434,7 +434,7 @@ for _method in IMAGE_FLOW_METHODS:
 def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
     from scipy.ndimage import map_coordinates
 
-    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")  # type: ignore[no-any-return]
+    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
 
 
 def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:

@@ -23,7 +23,7 @@ from bubble_rt.estimation.deformation import (
     Tracker,
     make_tracker,
 )
-from bubble_rt.estimation.estimator import EstimatorConfig, config_changes, config_values
+from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
 from bubble_rt.estimation.registry import EstimatorKind, estimator_kind
 from bubble_rt.estimation.solver import SolverSettings
 from bubble_rt.estimation.types import Estimate
@@ -87,11 +87,8 @@ class Pipeline:
         """Capture the reference from untouched ``frames``, take the mesh (a Mesh, or a preset
         name, node count or file: ``Mesh.from_spec``), fit it onto the reference surface when
         ``fit``, and build the pipeline."""
-        from bubble_rt.estimation.fitting import fit_mesh
-
         reference = Reference.capture(frames)
-        template = mesh if isinstance(mesh, Mesh) else Mesh.from_spec(mesh)
-        fitted = fit_mesh(template, reference, camera) if fit else template
+        fitted = fitted_mesh(mesh, reference, camera, fit=fit)
         return cls(fitted, camera, reference, kind=kind, config=config, flow=flow)
 
     @classmethod
@@ -175,6 +172,19 @@ class Pipeline:
         self.config = dataclasses.replace(self.config, **changes)
 
 
+def fitted_mesh(
+    mesh: Mesh | str, reference: Reference, camera: Camera, *, fit: bool = True
+) -> Mesh:
+    """The estimator mesh: ``mesh`` (a Mesh, or a preset name, node count or file:
+    ``Mesh.from_spec``), lifted onto the reference surface the camera sees when ``fit``."""
+    template = mesh if isinstance(mesh, Mesh) else Mesh.from_spec(mesh)
+    if not fit:
+        return template
+    from bubble_rt.estimation.fitting import fit_mesh
+
+    return fit_mesh(template, reference, camera)
+
+
 def estimator_values(section: Any) -> dict[str, float]:
     """The ``[estimator]`` parameter values (CONFIG_KEYS) of a config section."""
     from bubble_rt.estimation.estimator import CONFIG_KEYS
@@ -182,4 +192,4 @@ def estimator_values(section: Any) -> dict[str, float]:
     return {k: float(getattr(section, k)) for k in CONFIG_KEYS}
 
 
-__all__ = ["Pipeline", "config_values", "estimator_values"]
+__all__ = ["Pipeline", "estimator_values", "fitted_mesh"]
