@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from bubble_rt.estimation.names import FLOW_METHODS
+from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
 from bubble_rt.estimation.registry import estimator_kinds
 
 
@@ -209,7 +209,7 @@ class FlowSection:
     """Optical flow settings passed to the deformation tracker (FlowSettings; its other
     settings keep the deformation module's defaults)."""
 
-    method: str = "dis_ultrafast"
+    method: str = DEFAULT_FLOW_METHOD
     scale: float = 1.0
     forward_backward: bool = False
 

@@ -7,13 +7,28 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+from bubble_rt.config import DaemonConfig, EstimatorSection
 from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 
-if TYPE_CHECKING:
-    from bubble_rt.daemon.service import Daemon
+
+class Daemon(Protocol):
+    """What the requests need from the daemon (``bubble_rt.daemon.service.Daemon``)."""
+
+    config: DaemonConfig
+    mesh_msg: Any
+    processor: Any
+    recorder: Any
+
+    def status_message(self, stopped: bool = False) -> Any: ...
+
+    def request_tare(self) -> None: ...
+
+    def start_recording(self, path: str) -> None: ...
+
+    def queue_params(self, params: dict[str, float]) -> EstimatorSection: ...
 
 
 def validate_params(

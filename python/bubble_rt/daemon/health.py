@@ -4,15 +4,38 @@ the Status message published periodically and answered to get_status."""
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Any
+from collections import deque
+from typing import Any, Protocol
 
 import numpy as np
 
+from bubble_rt.config import DaemonConfig
 from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 
-if TYPE_CHECKING:
-    from bubble_rt.daemon.service import Daemon
+
+class Daemon(Protocol):
+    """The daemon state health reads (``bubble_rt.daemon.service.Daemon``)."""
+
+    config: DaemonConfig
+    sensor_id: str
+    processor: Any
+    recorder: Any
+    mesh_msg: Any
+    frames_published: int
+    errors: dict[str, int]
+    last_error: str
+    last_error_time: float
+    _camera_src: Any
+    _pressure_src: Any
+    _mid: Any
+    _collecting: list[Any]
+    _tare_requested: bool
+    _last_frame_time: float
+    _last_degraded: tuple[float, list[str]]
+    _started_at: float
+    _latencies: deque[float]
+    _publish_times: deque[float]
 
 
 def frames_dropped(d: Daemon) -> int:

@@ -25,7 +25,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
-from bubble_rt.estimation.names import FLOW_METHODS, IMAGE_FLOW_METHODS
+from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS, IMAGE_FLOW_METHODS
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 
@@ -77,9 +77,7 @@ class FlowSettings:
             neighbours is flagged (isolated depth/flow glitches); None disables.
     """
 
-    # Default from bench/deformation_bench.py: the fastest setting whose RMS flow error on the
-    # synthetic warp is <= 0.1 px (0.068 px): DIS ultrafast refined down to pyramid level 1.
-    method: str = "dis_ultrafast"
+    method: str = DEFAULT_FLOW_METHOD
     scale: float = 1.0
     margin_px: int = 24
     forward_backward: bool = False

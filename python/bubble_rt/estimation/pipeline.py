@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from bubble_rt.camera import Camera
 from bubble_rt.estimation.deformation import (
@@ -25,13 +25,9 @@ from bubble_rt.estimation.deformation import (
 )
 from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
 from bubble_rt.estimation.registry import EstimatorKind, estimator_kind
-from bubble_rt.estimation.solver import SolverSettings
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
-
-if TYPE_CHECKING:
-    from bubble_rt.config import DaemonConfig
 
 
 class Pipeline:
@@ -90,28 +86,6 @@ class Pipeline:
         reference = Reference.capture(frames)
         fitted = fitted_mesh(mesh, reference, camera, fit=fit)
         return cls(fitted, camera, reference, kind=kind, config=config, flow=flow)
-
-    @classmethod
-    def from_config(cls, config: DaemonConfig, camera: Camera, frames: Sequence[Frame]) -> Pipeline:
-        """The pipeline a daemon config describes ([estimator], [solver], [flow])."""
-        ec = config.estimator
-        est_config = EstimatorConfig(
-            solver=SolverSettings(time_limit=config.solver.time_limit_ms / 1e3)
-        )
-        est_config = dataclasses.replace(
-            est_config, **config_changes(est_config, estimator_values(ec))
-        )
-        fc = config.flow
-        flow = FlowSettings(method=fc.method, scale=fc.scale, forward_backward=fc.forward_backward)
-        return cls.capture(
-            frames,
-            camera,
-            mesh=ec.mesh,
-            fit=ec.fit_mesh,
-            kind=ec.kind,
-            config=est_config,
-            flow=flow,
-        )
 
     def _build_estimator(self) -> Any:
         return self.kind.build(self.mesh, self.config, self.camera, self.reference)
@@ -185,11 +159,4 @@ def fitted_mesh(
     return fit_mesh(template, reference, camera)
 
 
-def estimator_values(section: Any) -> dict[str, float]:
-    """The ``[estimator]`` parameter values (CONFIG_KEYS) of a config section."""
-    from bubble_rt.estimation.estimator import CONFIG_KEYS
-
-    return {k: float(getattr(section, k)) for k in CONFIG_KEYS}
-
-
-__all__ = ["Pipeline", "estimator_values", "fitted_mesh"]
+__all__ = ["Pipeline", "fitted_mesh"]

@@ -29,11 +29,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt.estimation.estimator import EstimatorConfig
 from bubble_rt.eval import CALIB_SEED_BASE, FanOut
 
 PARAMS = ("E", "k_f", "k_u")
-#: Paper defaults (method.md section 3).
-DEFAULTS: dict[str, float] = {"E": 1.317e6, "k_f": 0.3322, "k_u": 537592.0}
+#: Paper defaults (method.md section 3): the EstimatorConfig defaults.
+DEFAULTS: dict[str, float] = {
+    "E": EstimatorConfig().material.E,
+    "k_f": EstimatorConfig().k_f,
+    "k_u": EstimatorConfig().k_u,
+}
 
 
 @dataclass(frozen=True)

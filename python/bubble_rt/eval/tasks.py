@@ -228,6 +228,8 @@ def build_estimator(
 
 def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
     """Simulate one trajectory, run each estimator on every frame, score against the truth."""
+    from bubble_rt.estimation.registry import estimator_kind
+
     t0 = time.perf_counter()
     traj = simulate_trajectory(
         task.geometry,
@@ -235,8 +237,10 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
         task.n_frames,
         task.seed,
         n_reference=task.n_reference,
-        # the frictionless baseline always needs depth images, so render even for "oracle"
-        render=task.flow_method != "oracle" or any(e != "fem" for e in task.estimators),
+        # kinds that read the frames themselves (the frictionless baseline) need depth images,
+        # so render for them even with "oracle" tracking
+        render=task.flow_method != "oracle"
+        or not all(estimator_kind(e).tracked for e in task.estimators),
         physics=task.physics,
     )
     mesh = estimator_mesh(task.mesh, traj)
