@@ -252,7 +252,7 @@ class Tracker(Protocol):
 
 
 #: (mesh, camera, reference, settings) -> Tracker
-TrackerFactory = Callable[[Mesh, Camera, "Reference", "FlowSettings"], Tracker]
+TrackerFactory = Callable[[Mesh, Camera, Reference, FlowSettings], Tracker]
 _TRACKERS: dict[str, TrackerFactory] = {}
 
 

@@ -28,7 +28,6 @@ __all__ = [
     "EstimatorConfig",
     "ForceEstimator",
     "config_changes",
-    "config_values",
 ]
 
 
@@ -94,16 +93,6 @@ def config_changes(config: EstimatorConfig, values: Mapping[str, float]) -> dict
     if material:
         changes["material"] = replace(config.material, **material)
     return changes
-
-
-def config_values(config: EstimatorConfig, keys: Any = None) -> dict[str, float]:
-    """The ``[estimator]`` key values (CONFIG_KEYS) of ``config`` (all keys, or ``keys``)."""
-    out = {}
-    for key in CONFIG_KEYS if keys is None else keys:
-        name, sub = CONFIG_KEYS[key]
-        v = getattr(config, name)
-        out[key] = float(v if sub is None else getattr(v, sub))
-    return out
 
 
 class _Tracker(Protocol):

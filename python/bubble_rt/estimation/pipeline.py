@@ -128,14 +128,10 @@ class Pipeline:
         """The ``[estimator]`` keys ``reconfigure`` accepts for this kind."""
         return self.kind.params
 
-    def unknown_params(self, keys: Sequence[str]) -> list[str]:
-        """Those of ``keys`` this pipeline's estimator cannot change while running."""
-        return [k for k in keys if k not in self.kind.params]
-
     def reconfigure(self, values: Mapping[str, float]) -> None:
         """Change ``[estimator]`` parameters (k_f, k_u, youngs_modulus, k_const, k_linear) between
         frames. ValueError names a parameter this kind does not have; nothing changes then."""
-        bad = self.unknown_params(list(values))
+        bad = [k for k in values if k not in self.kind.params]
         if bad:
             raise ValueError(
                 f"the {self.kind.name!r} estimator has no parameter {', '.join(bad)} "
