@@ -331,6 +331,28 @@ def test_identical_frames_give_zero_force_and_no_contact(scene):
     assert {"flow", "lift", "solve"} <= set(e.timings_ms)
 
 
+def test_pipeline_two_stages_match_process_and_the_attached_estimator(scene):
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.pipeline import Pipeline
+
+    cam, depth, img, ref, mesh = scene
+    F = np.zeros((cam.height, cam.width, 2), np.float32)
+    F[..., 0] = 1.0
+    frame = Frame(warp(img, F), depth, 100050.0)
+    pipe = Pipeline(mesh, cam, ref)
+    d = pipe.deform(frame)
+    e = pipe.solve(frame, d)
+    est = ForceEstimator(mesh)
+    est.attach(DeformationTracker(mesh, cam, ref))
+    e_ref = est.process(frame)
+    np.testing.assert_allclose(e.node_forces, e_ref.node_forces)
+    assert e.valid_node_fraction == e_ref.valid_node_fraction == d.valid_fraction
+    assert {"flow", "lift", "solve", "post"} <= set(e.timings_ms)
+    np.testing.assert_allclose(Pipeline(mesh, cam, ref).process(frame).net_force, e.net_force)
+    pipe.set_reference(Reference.capture(frame))
+    assert np.abs(pipe.deform(frame).U).max() < 2e-6
+
+
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_real_untouched_frames_give_no_contact_and_small_force():
     from bubble_rt.estimation.estimator import ForceEstimator
