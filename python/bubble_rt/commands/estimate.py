@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
+
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
 
@@ -42,8 +44,8 @@ def parse_frames(spec: str, n: int) -> list[int]:
     return out
 
 
-#: Image-based methods of bubble_rt.estimation.deformation.FLOW_METHODS (not imported: --help stays fast).
-FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy")
+#: The image-based flow methods (recordings carry no ground truth for "oracle").
+FLOW_CHOICES = IMAGE_FLOW_METHODS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,11 +78,10 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.estimation.estimator import ForceEstimator
-    from bubble_rt.estimation.fitting import fit_mesh
+    from bubble_rt.estimation.deformation import FlowSettings
+    from bubble_rt.estimation.pipeline import Pipeline
     from bubble_rt.io.recordings import open_recording
-    from bubble_rt.mesh import PRESET_NODES, Mesh
+    from bubble_rt.mesh import PRESET_NODES
 
     rec = open_recording(args.recording)
     n = len(rec)
@@ -90,24 +91,24 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
-    reference = Reference.capture([rec[i] for i in ref_idx])
-    if args.mesh in PRESET_NODES:
-        mesh = fit_mesh(Mesh.preset(args.mesh), reference, rec.camera)
-        mesh_info: dict[str, Any] = {"preset": args.mesh, "fitted": True}
-    else:
-        mesh = Mesh.load(args.mesh)
-        mesh_info = {"file": str(args.mesh), "fitted": False}
-    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
-    if args.save_mesh:
-        mesh.save(args.save_mesh)
     settings = FlowSettings()
     if args.flow:
         settings = replace(settings, method=args.flow)
     if args.flow_scale is not None:
         settings = replace(settings, scale=args.flow_scale)
-    tracker = DeformationTracker(mesh, rec.camera, reference, settings)
-    estimator = ForceEstimator(mesh)
-    estimator.attach(tracker)
+    preset = args.mesh in PRESET_NODES
+    estimator = Pipeline.capture(
+        [rec[i] for i in ref_idx], rec.camera, mesh=args.mesh, fit=preset, flow=settings
+    )
+    mesh, reference = estimator.mesh, estimator.reference
+    mesh_info: dict[str, Any] = (
+        {"preset": args.mesh, "fitted": True}
+        if preset
+        else {"file": str(args.mesh), "fitted": False}
+    )
+    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
+    if args.save_mesh:
+        mesh.save(args.save_mesh)
     R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
 
     frames_out = []

@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def build_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def build_config(args: argparse.Namespace):
     from bubble_rt.config import DaemonConfig
 
     cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()

@@ -333,13 +333,8 @@ def SimCamera(
     memory and later passes replay it, leaving the CPU to the estimator (the noise then
     repeats every loop).
     """
-    try:
-        from bubble_rt.sim import Simulator
-    except ImportError:
-        try:
-            from bubble_rt.sim.simulator import Simulator
-        except ImportError as exc:
-            raise SourceError(f"the simulator is not available: {exc}") from exc
+    from bubble_rt.sim import Simulator
+
     last = [-1]
 
     def progress(done: int, total: int) -> None:
@@ -353,14 +348,8 @@ def SimCamera(
                 total,
             )
 
-    import inspect
-
     try:
-        takes_progress = "progress" in inspect.signature(Simulator).parameters
-    except (TypeError, ValueError):
-        takes_progress = False
-    try:
-        sim = Simulator(scene, progress=progress) if takes_progress else Simulator(scene)
+        sim = Simulator(scene, progress=progress)
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)
@@ -415,10 +404,8 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
         if rec.has_reference:
             reference = rec.reference_frames
     else:
-        try:
-            from bubble_rt.io.recordings import open_recording
-        except ImportError as exc:
-            raise SourceError(f"replay of {path!r} needs bubble_rt.io.recordings: {exc}") from exc
+        from bubble_rt.io.recordings import open_recording
+
         rec = open_recording(p)
 
     def frames() -> Iterator[Frame]:

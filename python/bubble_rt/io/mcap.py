@@ -88,7 +88,7 @@ def camera_from_info(msg: Any) -> Camera:
         cy=msg.cy,
         width=msg.width,
         height=msg.height,
-        distortion=tuple(msg.distortion) or (0.0,) * 5,  # type: ignore[arg-type]
+        distortion=tuple(msg.distortion) or (0.0,) * 5,
         pose=tuple(tuple(r) for r in np.asarray(msg.pose, dtype=np.float64).reshape(4, 4)),
     )
 
