@@ -355,6 +355,23 @@ class SceneBuilder:
         return _json(TOPIC_STATUS, STATUS_SCHEMA, payload, t_ns)
 
 
+def channel_specs() -> list[Encoded]:
+    """Every channel (topic and schema, empty data) so that clients see them all at once."""
+    import foxglove.messages as fm
+
+    out = []
+    for topic, cls in ((TOPIC_SCENE, fm.SceneUpdate), (TOPIC_IMAGE, fm.CompressedImage)):
+        s = cls.get_schema()
+        out.append(Encoded(topic, s.name, s.encoding, bytes(s.data), "protobuf", b"", 0))
+    for topic, schema in (
+        (TOPIC_NET_FORCE, NET_FORCE_SCHEMA),
+        (TOPIC_TRUE_FORCE, NET_FORCE_SCHEMA),
+        (TOPIC_STATUS, STATUS_SCHEMA),
+    ):
+        out.append(_json(topic, schema, {}, 0))
+    return out
+
+
 def parse_address(address: str | None) -> tuple[str, int]:
     """(host, port) of ``ws://HOST:PORT`` (or ``HOST:PORT``, or ``:PORT``)."""
     a = address or DEFAULT_ADDRESS
@@ -394,6 +411,8 @@ class FoxgloveView:
             )
             self.address = f"ws://{host}:{self.server.port}"
         self._channels: dict[str, Any] = {}
+        for spec in channel_specs():
+            self._channel(spec)
         self._slot: LatestSlot[tuple[Any, Any, Any, Any, Any]] = LatestSlot()
         self._stop = threading.Event()
         self.sent = 0
@@ -443,23 +462,26 @@ class FoxgloveView:
             except Exception as exc:  # never take the daemon down; report the first fault
                 self.error = self.error or f"{type(exc).__name__}: {exc}"
 
-    def _emit(self, msgs: list[Encoded], recorder: Any) -> None:
+    def _channel(self, m: Encoded) -> Any:
         import foxglove
 
+        ch = self._channels.get(m.topic)
+        if ch is None:
+            ch = foxglove.Channel(
+                m.topic,
+                schema=foxglove.Schema(
+                    name=m.schema_name, encoding=m.schema_encoding, data=m.schema_data
+                ),
+                message_encoding=m.message_encoding,
+                context=self.context,
+            )
+            self._channels[m.topic] = ch
+        return ch
+
+    def _emit(self, msgs: list[Encoded], recorder: Any) -> None:
         with self._lock:
             for m in msgs:
-                ch = self._channels.get(m.topic)
-                if ch is None:
-                    ch = foxglove.Channel(
-                        m.topic,
-                        schema=foxglove.Schema(
-                            name=m.schema_name, encoding=m.schema_encoding, data=m.schema_data
-                        ),
-                        message_encoding=m.message_encoding,
-                        context=self.context,
-                    )
-                    self._channels[m.topic] = ch
-                ch.log(m.data, log_time=m.log_time_ns)
+                self._channel(m).log(m.data, log_time=m.log_time_ns)
                 if recorder is not None:
                     recorder.write_message(m.topic, m, m.log_time_ns / 1e9)
                 self.sent += 1
