@@ -218,7 +218,9 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
         assert schemas[fx.TOPIC_STATUS] == ("bubble_rt.Status", "json")
         assert schemas["/bubble_rt/force"][0] == "bubble_rt.v1.ForceFrame"  # still there
         n_scene = 0
-        for schema, channel, message in reader.iter_messages(topics=[fx.TOPIC_SCENE, fx.TOPIC_NET_FORCE]):
+        for schema, channel, message in reader.iter_messages(
+            topics=[fx.TOPIC_SCENE, fx.TOPIC_NET_FORCE]
+        ):
             if channel.topic == fx.TOPIC_SCENE:
                 scene = message_class(schema.name, schema.data).FromString(message.data)
                 assert len({e.id: e for e in scene.entities}["forces"].arrows) == 5

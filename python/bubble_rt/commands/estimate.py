@@ -51,9 +51,7 @@ FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneba
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "recording", help="recording (Punyo .npy layout, PNG folder or ROS 2 bag)"
-    )
+    parser.add_argument("recording", help="recording (Punyo .npy layout, PNG folder or ROS 2 bag)")
     parser.add_argument(
         "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
     )

@@ -560,7 +560,9 @@ class Daemon:
         if rec is not None:
             rec.write_force(msg)
         for viewer in self.viewers:
-            viewer.on_frame(item.frame, msg, self.mesh_msg, rec, getattr(est, "displacements", None))
+            viewer.on_frame(
+                item.frame, msg, self.mesh_msg, rec, getattr(est, "displacements", None)
+            )
 
     def _send(self, topic: bytes, msg: Any) -> None:
         try:

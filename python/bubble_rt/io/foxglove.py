@@ -173,7 +173,9 @@ def scene_update(
     F = np.asarray(node_forces, dtype=np.float64).reshape(-1, 3)
     C = np.asarray(contact, dtype=bool).reshape(-1)
     stamp = fm.Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000))
-    ident = fm.Pose(position=fm.Vector3(x=0, y=0, z=0), orientation=fm.Quaternion(x=0, y=0, z=0, w=1))
+    ident = fm.Pose(
+        position=fm.Vector3(x=0, y=0, z=0), orientation=fm.Quaternion(x=0, y=0, z=0, w=1)
+    )
     cols = pressure_colors(normal_pressure, pressure_max_pa)
     tri = fm.TriangleListPrimitive(
         pose=ident,
@@ -256,7 +258,9 @@ def jpeg_image(rgb: NDArray, t_ns: int, quality: int = 80) -> Any:
     import cv2
     import foxglove.messages as fm
 
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    ok, buf = cv2.imencode(
+        ".jpg", np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    )
     if not ok:
         raise ValueError("JPEG encoding failed")
     return fm.CompressedImage(

@@ -259,8 +259,8 @@ def image_to_array(msg: Any, depth_unit: float = 0.001) -> NDArray:
         raw = data[: h * step].reshape(h, step)[:, : w * 2].copy().view(dt).reshape(h, w)
         return raw.astype(np.float32) * np.float32(depth_unit)
     if enc == "32fc1":
-        dt = np.dtype(">f4" if big else "<f4")
-        d = data[: h * step].reshape(h, step)[:, : w * 4].copy().view(dt).reshape(h, w)
+        dtf = np.dtype(">f4" if big else "<f4")
+        d = data[: h * step].reshape(h, step)[:, : w * 4].copy().view(dtf).reshape(h, w)
         d = d.astype(np.float32)
         return np.where(np.isfinite(d) & (d > 0), d, np.float32(0))
     raise FrameError(f"unsupported image encoding {msg.encoding!r}")
@@ -452,7 +452,7 @@ class BagRecording:
             )
         for role in ("color", "depth"):
             enc = encodings[role].lower()
-            ok = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3")
+            ok: tuple[str, ...] = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3")
             if role == "depth":
                 ok = ("16uc1", "mono16", "32fc1")
             if enc not in ok:
@@ -603,7 +603,9 @@ def _header(ts: Any, t: float, frame_id: str) -> Any:
     ns = int(round(t * 1e9))
     Time = ts.types["builtin_interfaces/msg/Time"]
     Header = ts.types["std_msgs/msg/Header"]
-    return Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame_id)
+    return Header(
+        stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame_id
+    )
 
 
 def _storage(storage: str) -> Any:
@@ -692,7 +694,9 @@ class BagWriter:
             ]
         ).astype("<f4")
         PF = ts.types["sensor_msgs/msg/PointField"]
-        fields = [PF(name=nm, offset=off, datatype=PF.FLOAT32, count=1) for nm, off in node_cloud_fields()]
+        fields = [
+            PF(name=nm, offset=off, datatype=PF.FLOAT32, count=1) for nm, off in node_cloud_fields()
+        ]
         step = 4 * len(NODE_FIELDS)
         cloud = ts.types[POINTCLOUD2](
             header=header,
@@ -761,7 +765,9 @@ def write_bag(
     ts = bag.ts
     ns_ = f"/{sensor}"
     t_color = f"{ns_}/color/image_rect_raw"
-    t_depth = f"{ns_}/aligned_depth_to_color/image_raw" if aligned else f"{ns_}/depth/image_rect_raw"
+    t_depth = (
+        f"{ns_}/aligned_depth_to_color/image_raw" if aligned else f"{ns_}/depth/image_rect_raw"
+    )
     t_info = f"{ns_}/color/camera_info"
     cam_frame = f"{sensor}_color_optical_frame"
     Image = ts.types[IMAGE]
@@ -794,11 +800,18 @@ def write_bag(
             bag.write(
                 t_color,
                 IMAGE,
-                Image(header=hdr, height=h, width=w, encoding=color_encoding, is_bigendian=0,
-                      step=3 * w, data=rgb.reshape(-1)),
+                Image(
+                    header=hdr,
+                    height=h,
+                    width=w,
+                    encoding=color_encoding,
+                    is_bigendian=0,
+                    step=3 * w,
+                    data=rgb.reshape(-1),
+                ),
                 ns,
             )
-            d = np.asarray(f.depth, dtype=np.float32)
+            d: Any = np.asarray(f.depth, dtype=np.float32)
             if depth_size is not None:
                 import cv2
 
@@ -806,27 +819,57 @@ def write_bag(
             dh, dw = d.shape
             if depth_encoding.upper() == "16UC1":
                 raw = np.clip(np.rint(d / depth_unit), 0, 65535).astype("<u2")
-                dmsg = Image(header=hdr, height=dh, width=dw, encoding="16UC1", is_bigendian=0,
-                             step=2 * dw, data=raw.view(np.uint8).reshape(-1))
+                dmsg = Image(
+                    header=hdr,
+                    height=dh,
+                    width=dw,
+                    encoding="16UC1",
+                    is_bigendian=0,
+                    step=2 * dw,
+                    data=raw.view(np.uint8).reshape(-1),
+                )
             elif depth_encoding.upper() == "32FC1":
                 raw32 = d.astype("<f4")
-                dmsg = Image(header=hdr, height=dh, width=dw, encoding="32FC1", is_bigendian=0,
-                             step=4 * dw, data=raw32.view(np.uint8).reshape(-1))
+                dmsg = Image(
+                    header=hdr,
+                    height=dh,
+                    width=dw,
+                    encoding="32FC1",
+                    is_bigendian=0,
+                    step=4 * dw,
+                    data=raw32.view(np.uint8).reshape(-1),
+                )
             else:
                 raise ValueError(f"depth encoding {depth_encoding!r}: use 16UC1 or 32FC1")
             bag.write(t_depth, IMAGE, dmsg, ns)
             if camera_info:
                 k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
-                p = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+                p = [
+                    camera.fx,
+                    0.0,
+                    camera.cx,
+                    0.0,
+                    0.0,
+                    camera.fy,
+                    camera.cy,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0,
+                    0.0,
+                ]
                 RoI = ts.types["sensor_msgs/msg/RegionOfInterest"]
                 info = ts.types[CAMERA_INFO](
-                    header=hdr, height=camera.height, width=camera.width,
+                    header=hdr,
+                    height=camera.height,
+                    width=camera.width,
                     distortion_model="plumb_bob",
                     d=np.asarray(camera.distortion, dtype=np.float64),
                     k=np.asarray(k, dtype=np.float64),
                     r=np.eye(3).reshape(-1),
                     p=np.asarray(p, dtype=np.float64),
-                    binning_x=0, binning_y=0,
+                    binning_x=0,
+                    binning_y=0,
                     roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
                 )
                 bag.write(t_info, CAMERA_INFO, info, ns)
@@ -839,7 +882,8 @@ def write_bag(
                     ts.types[WRENCH](
                         header=_header(ts, f.t, "ft_sensor"),
                         wrench=ts.types["geometry_msgs/msg/Wrench"](
-                            force=V3(x=wv[0], y=wv[1], z=wv[2]), torque=V3(x=wv[3], y=wv[4], z=wv[5])
+                            force=V3(x=wv[0], y=wv[1], z=wv[2]),
+                            torque=V3(x=wv[3], y=wv[4], z=wv[5]),
                         ),
                     ),
                     ns,
@@ -849,7 +893,12 @@ def write_bag(
             F32 = ts.types[FLOAT32]
             for t in t_s:
                 hpa = np.float32(_pressure_curve(frames, t) / HPA)
-                bag.write(f"{ns_}/pressure", FLOAT32, F32(data=hpa), int(round((t + pressure_delay_s) * 1e9)))
+                bag.write(
+                    f"{ns_}/pressure",
+                    FLOAT32,
+                    F32(data=hpa),
+                    int(round((t + pressure_delay_s) * 1e9)),
+                )
     finally:
         bag.close()
     return bag.path
