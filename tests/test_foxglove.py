@@ -51,13 +51,16 @@ def test_scene_update_builder_arrows_colours_patches():
     F = np.zeros((n, 3))
     F[nodes] = [0.0, 0.1, -0.2]
     p = np.zeros(n)
-    p[nodes] = 4000.0
+    p[nodes] = 6000.0
     contact = np.zeros(n, bool)
     contact[nodes] = True
     patch = Patch(
         centroid=mesh.vertices[nodes].mean(axis=0), area=1e-4, force=F.sum(0), nodes=nodes
     )
-    msg = fx.scene_update(mesh.vertices, mesh.triangles, F, p, contact, [patch], t_ns=123)
+    F[mesh.boundary[:3]] = [0.0, 0.0, 1.0]  # rim support: no arrows
+    msg = fx.scene_update(
+        mesh.vertices, mesh.triangles, F, p, contact, [patch], boundary=mesh.boundary, t_ns=123
+    )
     schema = msg.get_schema()
     scene = message_class("foxglove.SceneUpdate", bytes(schema.data)).FromString(msg.encode())
     ent = {e.id: e for e in scene.entities}
@@ -73,7 +76,7 @@ def test_scene_update_builder_arrows_colours_patches():
     )
     np.testing.assert_allclose(arrow_tips(scene), mesh.vertices[nodes], atol=1e-6)  # tip at node
     assert len(ent["contact"].spheres) == 4
-    assert ent["contact"].texts[0].text == f"patch 0: {np.linalg.norm(F.sum(0)):.2f} N"
+    assert ent["contact"].texts[0].text == f"patch 0: {np.linalg.norm(patch.force):.2f} N"
     assert ent["membrane"].frame_id == fx.FRAME_ID
 
 

@@ -25,9 +25,10 @@ topic                           schema (encoding)           content
 Everything is in the frame ``bubble_rt_sensor`` (the mesh frame: rim plane z = 0, dome
 towards +z). Scene conventions:
 
-* colour: normal contact pressure (inward positive) mapped linearly from 0 (grey-blue) to
-  ``pressure_max_pa`` (default 2 kPa, red); pressure above it is clamped to red.
-* arrows: one per node whose contact force exceeds ``min_arrow_n`` (0.01 N), drawn as the force
+* colour: normal contact pressure (inward positive) mapped linearly from 0 (grey-blue) over
+  yellow (half) to ``pressure_max_pa`` (default 5 kPa, red); above it is clamped to red.
+* arrows: one per contact node (``arrows="all"``: every node off the rim, whose forces are
+  its support, not contact) whose force exceeds ``min_arrow_n`` (0.01 N), drawn as the force
   acting on the membrane: the tip at the node, the arrow along the force, its length
   ``arrow_scale`` x |f| (default 0.05 m per N, i.e. 5 mm per 0.1 N).
 * contact: every contact node as a yellow 2 mm sphere; each contact patch (connected contact
@@ -59,7 +60,7 @@ DEFAULT_ADDRESS = "ws://127.0.0.1:8765"
 
 ARROW_SCALE_M_PER_N = 0.05
 MIN_ARROW_N = 0.01
-PRESSURE_MAX_PA = 2000.0
+PRESSURE_MAX_PA = 5000.0
 
 NET_FORCE_SCHEMA = {
     "title": "bubble_rt.NetForce",
@@ -161,6 +162,8 @@ def scene_update(
     contact: NDArray,
     patches: list[Any] | None = None,
     *,
+    boundary: NDArray | None = None,
+    arrows_for: str = "contact",
     t_ns: int = 0,
     arrow_scale: float = ARROW_SCALE_M_PER_N,
     min_arrow_n: float = MIN_ARROW_N,
@@ -186,6 +189,10 @@ def scene_update(
     membrane = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="membrane", triangles=[tri])
     arrows = []
     mags = np.linalg.norm(F, axis=1)
+    if arrows_for == "contact":
+        mags[~C] = 0.0
+    if boundary is not None:
+        mags[np.asarray(boundary, dtype=np.int64)] = 0.0  # the rim's support, not contact
     red = fm.Color(r=0.9, g=0.15, b=0.1, a=1.0)
     for i in np.flatnonzero(mags > min_arrow_n):
         d = F[i] / mags[i]
@@ -279,7 +286,11 @@ class SceneBuilder:
         arrow_scale: float = ARROW_SCALE_M_PER_N,
         pressure_max_pa: float = PRESSURE_MAX_PA,
         image_hz: float = 10.0,
+        arrows_for: str = "contact",
     ) -> None:
+        if arrows_for not in ("contact", "all"):
+            raise ValueError(f"arrows_for must be 'contact' or 'all', got {arrows_for!r}")
+        self.arrows_for = arrows_for
         self.arrow_scale = arrow_scale
         self.pressure_max_pa = pressure_max_pa
         self.image_period = 1.0 / image_hz if image_hz > 0 else float("inf")
@@ -311,6 +322,8 @@ class SceneBuilder:
             d.normal_pressure,
             d.contact,
             d.patches,
+            boundary=self._mesh.boundary,
+            arrows_for=self.arrows_for,
             t_ns=t_ns,
             arrow_scale=self.arrow_scale,
             pressure_max_pa=self.pressure_max_pa,
