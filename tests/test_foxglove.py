@@ -261,3 +261,28 @@ def test_replay_of_a_bag_at_recorded_pace(tmp_path):
     assert stamps[11] - stamps[3] == pytest.approx(8 / 30, abs=0.1)
     k = idx.index(5)
     np.testing.assert_array_equal(got[k].rgb, frames[5].rgb)
+
+
+def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
+    import argparse
+
+    from bubble_rt.commands import serve
+    from bubble_rt.io.rosbag import write_bag
+    from test_rosbag import small_frames
+
+    parser = argparse.ArgumentParser()
+    serve.add_arguments(parser)
+    assert parser.parse_args([]).foxglove is None  # off by default
+    assert parser.parse_args(["--foxglove"]).foxglove == fx.DEFAULT_ADDRESS
+    assert parser.parse_args(["--foxglove", "ws://0.0.0.0:9"]).foxglove == "ws://0.0.0.0:9"
+    frames, cam = small_frames(3)
+    bag = write_bag(tmp_path / "bag", frames, cam)
+    args = parser.parse_args(["--camera", f"replay:{bag}", "--topics", "/bubble_1"])
+    src = serve.bag_replay_source(serve.build_config(args), args)
+    assert src is not None and src.name == "replay:bag"
+    args = parser.parse_args(["--camera", f"replay:{bag}", "--topics", "/bubble_9"])
+    from bubble_rt.daemon.sources import SourceError
+
+    with pytest.raises(SourceError, match="color: no sensor_msgs/msg/Image topic under /bubble_9"):
+        serve.bag_replay_source(serve.build_config(args), args)
+    assert serve.bag_replay_source(serve.build_config(parser.parse_args([])), args) is None

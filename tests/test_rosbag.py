@@ -77,6 +77,18 @@ def test_bag_round_trip_frame_for_frame(tmp_path, storage, encoding, wrench):
     np.testing.assert_array_equal(rec[1].rgb, frames[1].rgb)
 
 
+def test_own_mcap_recordings_are_not_bags(tmp_path):
+    from bubble_rt.io.mcap import write_recording
+
+    frames, cam = small_frames(2)
+    p = tmp_path / "run.mcap"
+    write_recording(p, frames, cam)
+    assert not is_rosbag(p) and not is_rosbag(tmp_path)
+    bag = write_bag(tmp_path / "bag", frames, cam)
+    assert is_rosbag(next(bag.glob("*.mcap")))  # a lone bag file opens too
+    assert len(open_recording(next(bag.glob("*.mcap")))) == 2
+
+
 def test_pressure_receive_time_and_firmware_delay(tmp_path):
     frames, cam = small_frames()
     path = write_bag(tmp_path / "bag", frames, cam)
