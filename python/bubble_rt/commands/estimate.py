@@ -9,6 +9,10 @@ file is used as given: it must already be in the recording camera's mesh frame).
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
 timings_ms, wrench (6 or null), solver_status}]}.
+
+RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
+writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
+per frame (see :mod:`bubble_rt.io.rosbag`). ``--json`` or ``--bag`` (or both) is required.
 """
 
 from __future__ import annotations
@@ -49,14 +53,23 @@ FLOW_CHOICES = IMAGE_FLOW_METHODS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", help="recording folder (Punyo .npy layout or PNG folder)")
+    parser.add_argument("recording", help="recording (Punyo .npy layout, PNG folder or ROS 2 bag)")
     parser.add_argument(
         "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
     )
     parser.add_argument(
         "--mesh", default="medium", help="preset to fit (coarse|medium|fine) or a mesh file"
     )
-    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--json", default=None, help="output JSON file")
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    parser.add_argument("--bag", default=None, help="also write a rosbag2 (MCAP) folder here")
+    parser.add_argument(
+        "--topics", default=None, help="bag topics: color=..,depth=..,info=..,pressure=.. or /ns"
+    )
+    parser.add_argument(
+        "--depth-unit", type=float, default=None, help="bag 16UC1 depth metres per count (0.001)"
+    )
+    # ---- end ROS 2 bags ----
     parser.add_argument(
         "--flow",
         default=None,
@@ -83,7 +96,14 @@ def run(args: argparse.Namespace) -> int:
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
-    rec = open_recording(args.recording)
+    if not args.json and not args.bag:
+        print("bubble-rt estimate: give --json OUT and/or --bag OUT", file=sys.stderr)
+        return 2
+    try:
+        rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
+    except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
+        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
+        return 2
     n = len(rec)
     try:
         ref_idx = parse_frames(args.reference_frames, n)
@@ -111,11 +131,25 @@ def run(args: argparse.Namespace) -> int:
         mesh.save(args.save_mesh)
     R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
 
+    bag = None
+    if args.bag:
+        from bubble_rt.io.rosbag import BagWriter
+
+        bag = BagWriter(args.bag)
     frames_out = []
     for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
         frame = rec[i]
         e = estimator.process(frame)
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        if bag is not None:
+            bag.write(
+                frame.t,
+                f_mesh,
+                np.asarray(mesh.vertices) + np.nan_to_num(np.asarray(e.displacements)),
+                e.node_forces,
+                e.normal_pressure,
+                e.contact,
+            )
         frames_out.append(
             {
                 "index": int(frame.index),
@@ -148,5 +182,8 @@ def run(args: argparse.Namespace) -> int:
         "reference_pressure_pa": reference.pressure_pa,
         "frames": frames_out,
     }
-    Path(args.json).write_text(json.dumps(out, indent=1))
+    if bag is not None:
+        bag.close()
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
     return 0

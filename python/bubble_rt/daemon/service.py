@@ -103,6 +103,9 @@ class Daemon:
         self._ref_frames: list[Frame] = []
         self._collecting: list[Frame] = []
         self.recorder: Any = None
+        #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
+        #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0
         self.errors: dict[str, int] = {}
@@ -180,6 +183,8 @@ class Daemon:
             self._pressure_arg[1].stop(0.2)
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
+        for viewer in self.viewers:
+            viewer.close()
         if self.recorder is not None:
             rec, self.recorder = self.recorder, None
             rec.close(timeout=max(0.1, deadline - time.monotonic()))
@@ -380,6 +385,10 @@ class Daemon:
         rec = self.recorder
         if rec is not None:
             rec.write_force(msg)
+        for viewer in self.viewers:
+            viewer.on_frame(
+                item.frame, msg, self.mesh_msg, rec, getattr(est, "displacements", None)
+            )
 
     def _send(self, topic: bytes, msg: Any) -> None:
         try:
@@ -415,6 +424,8 @@ class Daemon:
                     self._send(protocol.status_topic(self.sensor_id), msg)
                 if self.recorder is not None:
                     self.recorder.write_status(msg)
+                for viewer in self.viewers:
+                    viewer.on_status(msg, self.recorder)
 
     def _answer(self, frames: list[bytes]) -> None:
         ident, rest = frames[0], frames[1:]

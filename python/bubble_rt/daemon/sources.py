@@ -389,15 +389,20 @@ def SimCamera(
     return src
 
 
-def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> IterableCamera:
-    """A recording: this project's MCAP files or the punyo layout (``recordings``)."""
+def ReplayCamera(
+    path: str, realtime: bool = True, loop: bool = False, **bag_options: Any
+) -> IterableCamera:
+    """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
+    (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps."""
     from pathlib import Path
+
+    from bubble_rt.io.rosbag import is_rosbag
 
     p = Path(path)
     if not p.exists():
         raise SourceError(f"replay: no such recording {path!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
-    if p.suffix == ".mcap":
+    if p.suffix == ".mcap" and not is_rosbag(p):
         from bubble_rt.io.mcap import McapRecording
 
         rec: Any = McapRecording(p)
@@ -406,7 +411,10 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
     else:
         from bubble_rt.io.recordings import open_recording
 
-        rec = open_recording(p)
+        try:
+            rec = open_recording(p, **bag_options)
+        except (ValueError, FileNotFoundError) as exc:  # FrameError / BagTopicError
+            raise SourceError(f"replay of {path!r}: {exc}") from exc
 
     def frames() -> Iterator[Frame]:
         return iter(rec)

@@ -336,6 +336,7 @@ def evaluate_recording(
     n_reference: int = 5,
     force_threshold: float = 1.0,
     max_frames: int | None = None,
+    bag_options: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Net-force magnitude error and contact detection on a real recording with a wrench.
 
@@ -348,7 +349,7 @@ def evaluate_recording(
     """
     from bubble_rt.io.recordings import open_recording
 
-    rec = open_recording(path)
+    rec = open_recording(path, **(bag_options or {}))  # bag_options: ROS 2 bags only
     frames = list(rec)
     if max_frames:
         frames = frames[:max_frames]

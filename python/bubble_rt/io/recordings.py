@@ -283,21 +283,37 @@ class PngRecording(Recording):
 
 
 def open_recording(
-    path: str | Path, pose: NDArray[np.float64] | None = None, centre_from_data: bool = True
+    path: str | Path,
+    pose: NDArray[np.float64] | None = None,
+    centre_from_data: bool = True,
+    **bag_options: Any,
 ) -> Recording:
-    """Open a recording folder, detecting its layout (Punyo .npy or PNG folder).
+    """Open a recording, detecting its layout (Punyo .npy, PNG folder or ROS 2 bag).
 
     ``pose`` (4 x 4 camera -> mesh) overrides the Punyo layout's default :func:`punyo_pose`;
-    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout).
+    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout, bags).
+    A ROS 2 bag (folder with metadata.yaml, .db3, or ros2-profile .mcap) opens as
+    :class:`bubble_rt.io.rosbag.BagRecording`; ``bag_options`` (``topics``, ``depth_unit``,
+    ...) go to it.
     """
     p = Path(path)
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    from bubble_rt.io.rosbag import BagRecording, is_rosbag
+
+    if is_rosbag(p):
+        opts = {k: v for k, v in bag_options.items() if v is not None}
+        return BagRecording(p, pose=pose, centre_from_data=centre_from_data, **opts)  # type: ignore[return-value]
+    # ---- end ROS 2 bags ----
     if not p.is_dir():
         raise FileNotFoundError(f"recording folder not found: {p}")
     if (p / "expand").is_dir():
         return PunyoRecording(p, pose=pose, centre_from_data=centre_from_data)
     if (p / "frames.csv").exists():
         return PngRecording(p)
-    raise FrameError(f"{p}: neither a Punyo recording (expand/) nor a PNG folder (frames.csv)")
+    raise FrameError(
+        f"{p}: neither a Punyo recording (expand/), a PNG folder (frames.csv) nor a ROS 2 bag "
+        "(metadata.yaml)"
+    )
 
 
 def write_png_recording(
