@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--force-threshold", type=float, default=1.0, help="recording contact threshold (N)"
     )
     p.add_argument("--no-progress", action="store_true")
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    p.add_argument("--topics", default=None, help="bag topics (see `estimate --help`)")
+    p.add_argument("--depth-unit", type=float, default=None, help="bag 16UC1 metres per count")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
             mesh=args.mesh,
             n_reference=args.reference_frames,
             force_threshold=args.force_threshold,
+            bag_options={"topics": args.topics, "depth_unit": args.depth_unit},
         )
         print(ev.recording_table(res))
         if args.json:

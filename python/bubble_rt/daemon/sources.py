@@ -333,13 +333,8 @@ def SimCamera(
     memory and later passes replay it, leaving the CPU to the estimator (the noise then
     repeats every loop).
     """
-    try:
-        from bubble_rt.sim import Simulator
-    except ImportError:
-        try:
-            from bubble_rt.sim.simulator import Simulator
-        except ImportError as exc:
-            raise SourceError(f"the simulator is not available: {exc}") from exc
+    from bubble_rt.sim import Simulator
+
     last = [-1]
 
     def progress(done: int, total: int) -> None:
@@ -353,14 +348,8 @@ def SimCamera(
                 total,
             )
 
-    import inspect
-
     try:
-        takes_progress = "progress" in inspect.signature(Simulator).parameters
-    except (TypeError, ValueError):
-        takes_progress = False
-    try:
-        sim = Simulator(scene, progress=progress) if takes_progress else Simulator(scene)
+        sim = Simulator(scene, progress=progress)
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)
@@ -400,26 +389,32 @@ def SimCamera(
     return src
 
 
-def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> IterableCamera:
-    """A recording: this project's MCAP files or the punyo layout (``recordings``)."""
+def ReplayCamera(
+    path: str, realtime: bool = True, loop: bool = False, **bag_options: Any
+) -> IterableCamera:
+    """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
+    (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps."""
     from pathlib import Path
+
+    from bubble_rt.io.rosbag import is_rosbag
 
     p = Path(path)
     if not p.exists():
         raise SourceError(f"replay: no such recording {path!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
-    if p.suffix == ".mcap":
+    if p.suffix == ".mcap" and not is_rosbag(p):
         from bubble_rt.io.mcap import McapRecording
 
         rec: Any = McapRecording(p)
         if rec.has_reference:
             reference = rec.reference_frames
     else:
+        from bubble_rt.io.recordings import open_recording
+
         try:
-            from bubble_rt.io.recordings import open_recording
-        except ImportError as exc:
-            raise SourceError(f"replay of {path!r} needs bubble_rt.io.recordings: {exc}") from exc
-        rec = open_recording(p)
+            rec = open_recording(p, **bag_options)
+        except (ValueError, FileNotFoundError) as exc:  # FrameError / BagTopicError
+            raise SourceError(f"replay of {path!r}: {exc}") from exc
 
     def frames() -> Iterator[Frame]:
         return iter(rec)

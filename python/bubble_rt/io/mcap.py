@@ -93,7 +93,7 @@ def camera_from_info(msg: Any) -> Camera:
         cy=msg.cy,
         width=msg.width,
         height=msg.height,
-        distortion=tuple(msg.distortion) or (0.0,) * 5,  # type: ignore[arg-type]
+        distortion=tuple(msg.distortion) or (0.0,) * 5,
         pose=tuple(tuple(r) for r in np.asarray(msg.pose, dtype=np.float64).reshape(4, 4)),
     )
 
@@ -184,7 +184,8 @@ class Recorder:
         if self._closed:
             return False
         try:
-            self._queue.put_nowait((topic, build, _ns(t), int(seq)))
+            # MCAP log times are unsigned: the simulator's reference frames have t < 0.
+            self._queue.put_nowait((topic, build, max(_ns(t), 0), int(seq)))
             return True
         except queue.Full:
             self.dropped += 1
@@ -239,6 +240,14 @@ class Recorder:
     # ---------------------------------------------------------------- writer thread
     def _channel(self, topic: str, msg: Any) -> int:
         cid = self._channels.get(topic)
+        if cid is None and hasattr(msg, "schema_name"):  # pre-encoded (bubble_rt.io.foxglove)
+            sid = self._writer.register_schema(
+                name=msg.schema_name, encoding=msg.schema_encoding, data=msg.schema_data
+            )
+            cid = self._writer.register_channel(
+                topic=topic, message_encoding=msg.message_encoding, schema_id=sid
+            )
+            self._channels[topic] = cid
         if cid is None:
             from mcap.well_known import MessageEncoding
             from mcap_protobuf.schema import register_schema

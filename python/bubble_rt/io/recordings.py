@@ -283,15 +283,29 @@ class PngRecording(Recording):
 
 
 def open_recording(
-    path: str | Path, pose: NDArray[np.float64] | None = None, centre_from_data: bool = True
+    path: str | Path,
+    pose: NDArray[np.float64] | None = None,
+    centre_from_data: bool = True,
+    **bag_options: Any,
 ) -> Recording:
-    """Open a recording, detecting its layout (Punyo .npy, PNG folder or MCAP file).
+    """Open a recording, detecting its layout (Punyo .npy, PNG folder, ROS 2 bag or the
+    project's own MCAP file).
 
     ``pose`` (4 x 4 camera -> mesh) overrides the Punyo layout's default :func:`punyo_pose`;
-    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout).
+    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout, bags).
+    A ROS 2 bag (folder with metadata.yaml, .db3, or ros2-profile .mcap) opens as
+    :class:`bubble_rt.io.rosbag.BagRecording`; ``bag_options`` (``topics``, ``depth_unit``,
+    ...) go to it.
     """
     p = Path(path)
-    # ---- the project's own MCAP recordings (bubble_rt.io.mcap) ----
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    from bubble_rt.io.rosbag import BagRecording, is_rosbag
+
+    if is_rosbag(p):
+        opts = {k: v for k, v in bag_options.items() if v is not None}
+        return BagRecording(p, pose=pose, centre_from_data=centre_from_data, **opts)  # type: ignore[return-value]
+    # ---- end ROS 2 bags ----
+    # ---- the project's own MCAP recordings (bubble_rt.io.mcap; a bag was caught above) ----
     if p.suffix == ".mcap" and p.is_file():
         from bubble_rt.io.mcap import McapRecording
 
@@ -303,7 +317,10 @@ def open_recording(
         return PunyoRecording(p, pose=pose, centre_from_data=centre_from_data)
     if (p / "frames.csv").exists():
         return PngRecording(p)
-    raise FrameError(f"{p}: neither a Punyo recording (expand/) nor a PNG folder (frames.csv)")
+    raise FrameError(
+        f"{p}: neither a Punyo recording (expand/), a PNG folder (frames.csv) nor a ROS 2 bag "
+        "(metadata.yaml)"
+    )
 
 
 def write_png_recording(
