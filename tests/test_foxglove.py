@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from bubble_rt.daemon.foxglove_view import FoxgloveView
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import foxglove as fx
 from bubble_rt.io.protocol import Patch
@@ -162,7 +163,7 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
         pressure=constant_pressure(),
         processor_factory=FakeProcessor,
     )
-    view = fx.FoxgloveView("ws://127.0.0.1:0")
+    view = FoxgloveView("ws://127.0.0.1:0")
     d.viewers.append(view)
     d.start()
     try:

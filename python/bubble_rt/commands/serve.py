@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon = Daemon(cfg, camera=bag_replay_source(cfg, args))
         if args.foxglove:
-            from bubble_rt.io.foxglove import FoxgloveView
+            from bubble_rt.daemon.foxglove_view import FoxgloveView
 
             view = FoxgloveView(args.foxglove)
             daemon.viewers.append(view)

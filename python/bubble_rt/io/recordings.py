@@ -53,28 +53,7 @@ from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame, FrameError
-
-#: The public implementation's mesh frame is the camera frame rotated 25 degrees about the
-#: camera's y axis with the rim plane at z = 0.054 m; the footprint centre sits at x = 0.04025
-#: m there (its 390-node reference mesh spans x -0.017..0.0975, y -0.04..0.04).
-PUNYO_TILT_DEG = 25.0
-PUNYO_RIM_Z = 0.054
-PUNYO_CENTRE_X = 0.04025
-
-
-def punyo_pose(
-    tilt_deg: float = PUNYO_TILT_DEG, rim_z: float = PUNYO_RIM_Z, centre_x: float = PUNYO_CENTRE_X
-) -> NDArray[np.float64]:
-    """Camera -> mesh transform (4 x 4) for the Punyo sensor of the public recordings.
-
-    p_mesh = R_y(tilt) p_cam - (centre_x, 0, rim_z): the rim in z = 0, footprint centred.
-    """
-    a = np.radians(tilt_deg)
-    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -np.array([centre_x, 0.0, rim_z])
-    return T
+from bubble_rt.io.punyo import punyo_pose
 
 
 def fit_intrinsics(points: NDArray, width: int, height: int) -> tuple[float, float, float, float]:

@@ -34,7 +34,7 @@ samples at ``t`` (the nearest sample is held outside their span; ``meta["pressur
 says how far). A wrench is the nearest WrenchStamped by header stamp.
 
 Pose: without a ``/tf_static`` transform (see above), the Punyo layout's
-:func:`~bubble_rt.io.recordings.punyo_pose`, refined in-plane from frame 0 like the Punyo
+:func:`~bubble_rt.io.punyo.punyo_pose`, refined in-plane from frame 0 like the Punyo
 layout (the kit's sensor is the Punyo); ``pose=`` overrides.
 
 Writing (:class:`BagWriter`, ``bubble-rt estimate RECORDING --bag OUT``): a rosbag2 (MCAP)
@@ -374,7 +374,7 @@ class BagRecording:
             camera = camera.with_pose(tf_pose)
             self.placement = f"/tf_static {SENSOR_FRAME}"
         else:
-            from bubble_rt.io.recordings import punyo_pose
+            from bubble_rt.io.punyo import punyo_pose
 
             camera = camera.with_pose(punyo_pose())
             self.placement = "punyo_pose"
