@@ -77,3 +77,34 @@ def test_estimate_command_real_recording(tmp_path):
         assert np.linalg.norm(f["net_force"]) < 0.5
         assert len(f["wrench"]) == 6
         assert f["valid_node_fraction"] > 0.7
+
+
+def _png_fixture(tmp_path: Path) -> Path:
+    cam = Camera.d405()
+    depth = dome_depth(cam)
+    img = texture(cam.height, cam.width)
+    frames = [Frame(img, depth, 1e5, t=0.1 * i, index=i) for i in range(3)]
+    write_png_recording(tmp_path / "rec", frames, cam, depth_scale=1e-5)
+    return tmp_path / "rec"
+
+
+def test_estimate_takes_mesh_and_flow_from_config_and_flags_override_it(tmp_path):
+    rec = _png_fixture(tmp_path)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[estimator]\nmesh = "coarse"\nk_f = 0.2\n[flow]\nmethod = "dis_fast"\n')
+    out = tmp_path / "out.json"
+    base = ["estimate", str(rec), "--reference-frames", "0-1", "--no-progress", "--json", str(out)]
+    assert main([*base, "--config", str(cfg)]) == 0
+    res = json.loads(out.read_text())
+    assert res["mesh"]["nodes"] == 227 and res["flow"]["method"] == "dis_fast"
+    assert main([*base, "--config", str(cfg), "--flow", "farneback"]) == 0
+    assert json.loads(out.read_text())["flow"]["method"] == "farneback"
+
+
+def test_estimate_refuses_a_bad_config_naming_the_key(tmp_path, capsys):
+    rec = _png_fixture(tmp_path)
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[estimator]\nk_f = -1.0\n")
+    args = ["estimate", str(rec), "--config", str(cfg), "--json", str(tmp_path / "o.json")]
+    assert main(args) == 2
+    assert "invalid configuration: estimator.k_f" in capsys.readouterr().err

@@ -298,3 +298,21 @@ def test_eval_seed_changes_the_simulated_trajectories():
     b = trajectory_scene("round", 0, 6, 7)
     assert a.name == b.name
     assert a != b
+
+
+@pytest.mark.parametrize("command", ["eval", "bench"])
+def test_eval_and_bench_refuse_a_bad_config_naming_the_key(tmp_path, capsys, command):
+    from bubble_rt.cli import main
+
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[estimator]\nk_u = 1.0\nwhat = 3\n")
+    assert main([command, "--config", str(cfg)]) == 2
+    assert "invalid configuration: estimator.what" in capsys.readouterr().err
+
+
+def test_config_overrides_come_through_the_daemon_loader(tmp_path):
+    from bubble_rt.eval import load_config_overrides
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[estimator]\nk_f = 0.25\nyoungs_modulus = 2e6\n")
+    assert load_config_overrides(cfg) == {"k_f": 0.25, "E": 2e6}

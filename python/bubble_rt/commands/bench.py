@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 HELP = "benchmark rate/latency per mesh, the reference pipeline and the accuracy/time sweep"
 
@@ -17,6 +18,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flows", default=None, help="comma list of flow methods (first = default)")
     p.add_argument("--reference-frames", type=int, default=None, help="0 skips the reference")
     p.add_argument("--no-sweep", action="store_true")
+    p.add_argument(
+        "--config",
+        default=None,
+        help="configuration TOML (config dump, calibrate output): its [estimator] parameters",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,10 +31,17 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from dataclasses import replace
 
+    from bubble_rt.config import ConfigError
     from bubble_rt.eval import benchmark as bm
-    from bubble_rt.eval import write_json
+    from bubble_rt.eval import load_config_overrides, write_json
 
+    try:
+        overrides = load_config_overrides(args.config)
+    except ConfigError as exc:
+        print(f"bubble-rt bench: invalid configuration: {exc}", file=sys.stderr)
+        return 2
     s = bm.BenchSettings.quick() if args.quick else bm.BenchSettings()
+    s = replace(s, estimator=tuple(sorted(overrides.items())))
     if args.frames:
         s = replace(s, frames=args.frames)
     if args.meshes:

@@ -58,7 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
     )
     parser.add_argument(
-        "--mesh", default="medium", help="preset to fit (coarse|medium|fine) or a mesh file"
+        "--config",
+        default=None,
+        help="configuration TOML (config dump, calibrate output): estimator kind, mesh, "
+        "parameters and flow settings; the flags below override it",
+    )
+    parser.add_argument(
+        "--mesh", default=None, help="preset to fit (coarse|medium|fine) or a mesh file (medium)"
     )
     parser.add_argument("--json", default=None, help="output JSON file")
     # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
@@ -85,19 +91,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
     import sys
-    from dataclasses import replace
     from pathlib import Path
 
     import numpy as np
     from tqdm import tqdm
 
-    from bubble_rt.estimation.deformation import FlowSettings
-    from bubble_rt.estimation.pipeline import Pipeline
+    from bubble_rt.config import ConfigError, DaemonConfig
+    from bubble_rt.estimation.pipeline import Pipeline, capture_settings
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
     if not args.json and not args.bag:
         print("bubble-rt estimate: give --json OUT and/or --bag OUT", file=sys.stderr)
+        return 2
+    try:
+        cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()
+        cfg = cfg.with_overrides(
+            **{"estimator.mesh": args.mesh, "flow.method": args.flow, "flow.scale": args.flow_scale}
+        )
+    except ConfigError as exc:
+        print(f"bubble-rt estimate: invalid configuration: {exc}", file=sys.stderr)
         return 2
     try:
         rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
@@ -111,20 +124,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
-    settings = FlowSettings()
-    if args.flow:
-        settings = replace(settings, method=args.flow)
-    if args.flow_scale is not None:
-        settings = replace(settings, scale=args.flow_scale)
-    preset = args.mesh in PRESET_NODES
-    estimator = Pipeline.capture(
-        [rec[i] for i in ref_idx], rec.camera, mesh=args.mesh, fit=preset, flow=settings
-    )
+    settings = capture_settings(cfg, realtime=False)
+    preset = cfg.estimator.mesh in PRESET_NODES
+    settings["fit"] = settings["fit"] and preset
+    estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
-        {"preset": args.mesh, "fitted": True}
+        {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
         if preset
-        else {"file": str(args.mesh), "fitted": False}
+        else {"file": str(cfg.estimator.mesh), "fitted": False}
     )
     mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
     if args.save_mesh:
@@ -177,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
             "pose": cam.pose_matrix.tolist(),
         },
         "mesh": mesh_info,
-        "flow": {"method": settings.method, "scale": settings.scale},
+        "flow": {"method": settings["flow"].method, "scale": settings["flow"].scale},
         "reference_frames": ref_idx,
         "reference_pressure_pa": reference.pressure_pa,
         "frames": frames_out,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from dataclasses import replace
 
 HELP = "evaluate force/contact accuracy on simulated trajectories (or a real recording)"
@@ -27,7 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimators", default="fem,frictionless")
     p.add_argument("--mesh", default="medium", help="estimator mesh: coarse|medium|fine|<nodes>")
     p.add_argument("--flow", default="default", help="flow method (FlowSettings.method)")
-    p.add_argument("--config", default=None, help="TOML with [estimator] k_f, k_u, E")
+    p.add_argument(
+        "--config",
+        default=None,
+        help="configuration TOML (config dump, calibrate output): its [estimator] parameters",
+    )
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (e.g. tcp://h:8786)")
     p.add_argument("--json", default=None, help="write the summary (and per-frame records) here")
@@ -46,8 +51,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from bubble_rt import eval as ev
+    from bubble_rt.config import ConfigError
 
-    overrides = ev.load_config_overrides(args.config)
+    try:
+        overrides = ev.load_config_overrides(args.config)
+    except ConfigError as exc:
+        print(f"bubble-rt eval: invalid configuration: {exc}", file=sys.stderr)
+        return 2
     estimators = tuple(e.strip() for e in args.estimators.split(",") if e.strip())
     if args.recording:
         res = ev.evaluate_recording(

@@ -4,7 +4,6 @@ the contact patches it publishes."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -43,26 +42,9 @@ class EstimatorProcessor:
     run by the daemon's two threads."""
 
     def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
-        from bubble_rt.estimation.deformation import FlowSettings
-        from bubble_rt.estimation.estimator import CONFIG_KEYS, EstimatorConfig, config_changes
-        from bubble_rt.estimation.pipeline import Pipeline
-        from bubble_rt.estimation.solver import SolverSettings
+        from bubble_rt.estimation.pipeline import Pipeline, capture_settings
 
-        ec, fc = config.estimator, config.flow
-        est = EstimatorConfig(solver=SolverSettings(time_limit=config.solver.time_limit_ms / 1e3))
-        values = {key: float(getattr(ec, key)) for key in CONFIG_KEYS}
-        est = replace(est, **config_changes(est, values))
-        self.pipeline = Pipeline.capture(
-            frames,
-            camera,
-            mesh=ec.mesh,
-            fit=ec.fit_mesh,
-            kind=ec.kind,
-            config=est,
-            flow=FlowSettings(
-                method=fc.method, scale=fc.scale, forward_backward=fc.forward_backward
-            ),
-        )
+        self.pipeline = Pipeline.capture(frames, camera, **capture_settings(config, realtime=True))
         self.mesh = self.pipeline.mesh
 
     @property

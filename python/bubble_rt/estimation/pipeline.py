@@ -30,6 +30,30 @@ from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
 
 
+def capture_settings(config: Any, *, realtime: bool) -> dict[str, Any]:
+    """``Pipeline.capture`` keyword arguments from a daemon configuration (``bubble_rt.config.
+    DaemonConfig``, read through its ``estimator``, ``flow`` and ``solver`` sections): kind, mesh,
+    fit, EstimatorConfig and FlowSettings. Every command that takes ``--config`` builds its
+    pipeline from here. ``realtime`` applies ``solver.time_limit_ms`` (the daemon); offline
+    callers solve every frame to tolerance, so their results do not depend on the machine."""
+    from bubble_rt.estimation.estimator import CONFIG_KEYS
+    from bubble_rt.estimation.solver import SolverSettings
+
+    ec, fc = config.estimator, config.flow
+    limit = config.solver.time_limit_ms / 1e3 if realtime else 0.0
+    est = EstimatorConfig(solver=SolverSettings(time_limit=limit))
+    values = {key: float(getattr(ec, key)) for key in CONFIG_KEYS}
+    return {
+        "mesh": ec.mesh,
+        "fit": ec.fit_mesh,
+        "kind": ec.kind,
+        "config": dataclasses.replace(est, **config_changes(est, values)),
+        "flow": FlowSettings(
+            method=fc.method, scale=fc.scale, forward_backward=fc.forward_backward
+        ),
+    }
+
+
 class Pipeline:
     """One sensor's estimation path.
 

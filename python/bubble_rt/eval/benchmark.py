@@ -66,6 +66,8 @@ class BenchSettings:
     sweep_frames: int = 12
     sweep_scales: tuple[float, ...] = (0.5, 1.0)
     sweep_tolerances: tuple[float, ...] = (5e-2, 5e-3, 5e-5)
+    #: estimator parameter overrides (E, k_f, k_u, k_const, k_linear; from ``--config``)
+    estimator: tuple[tuple[str, float], ...] = ()
     #: simulator physics backend (None: the real one; tests pass a stand-in)
     physics: Any = None
 
@@ -258,7 +260,7 @@ def run_bench(
         settings.geometry, settings.trajectory, n_total, settings.seed, physics=settings.physics
     )
     frames_all = traj.frames
-    base_config = estimator_config({})
+    base_config = estimator_config(settings.estimator)
     result: dict[str, Any] = {
         "settings": {
             "frames": settings.frames,

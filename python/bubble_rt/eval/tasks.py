@@ -86,24 +86,23 @@ def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) 
 
 
 def load_config_overrides(path: str | Path | None) -> dict[str, float]:
-    """Read [estimator] k_f, k_u, youngs_modulus (or E), k_const, k_linear from a TOML file
-    (the daemon's config or `bubble-rt calibrate`'s output); {} when no path is given."""
+    """The estimator parameters a configuration file sets (the daemon's TOML or `bubble-rt
+    calibrate`'s output), named as evaluation names them (E, k_f, k_u, k_const, k_linear);
+    {} when no path is given. The file goes through the one configuration loader
+    (``DaemonConfig.load``), so an unknown key or an out-of-range value raises ``ConfigError``
+    naming it."""
     if not path:
         return {}
     import tomllib
 
-    data = tomllib.loads(Path(path).read_text())
-    est = data.get("estimator", {})
-    out: dict[str, float] = {}
-    for k in ("k_f", "k_u", "k_const", "k_linear", "E"):
-        if k in est:
-            out[k] = float(est[k])
-    if _E_KEY in est:
-        out["E"] = float(est[_E_KEY])
-    mat = est.get("material", {})
-    if isinstance(mat, dict) and "E" in mat:
-        out["E"] = float(mat["E"])
-    return out
+    from bubble_rt.config import DaemonConfig
+
+    cfg = DaemonConfig.load(path)
+    present = tomllib.loads(Path(path).read_text()).get("estimator", {})
+    names = {_E_KEY: "E", "k_f": "k_f", "k_u": "k_u", "k_const": "k_const", "k_linear": "k_linear"}
+    return {
+        name: float(getattr(cfg.estimator, key)) for key, name in names.items() if key in present
+    }
 
 
 def make_tasks(
