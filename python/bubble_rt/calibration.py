@@ -32,8 +32,8 @@ from numpy.typing import NDArray
 from bubble_rt.evaluation import CALIB_SEED_BASE, FanOut, lumped_areas
 
 PARAMS = ("E", "k_f", "k_u")
-#: Paper defaults (method.md section 3).
-DEFAULTS: dict[str, float] = {"E": 1.317e6, "k_f": 0.3322, "k_u": 537592.0}
+#: The estimator's defaults (bubble_rt.estimator.EstimatorConfig), where the search starts.
+DEFAULTS: dict[str, float] = {"E": 0.66e6, "k_f": 0.1, "k_u": 537592.0}
 
 
 @dataclass(frozen=True)
