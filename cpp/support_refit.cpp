@@ -44,8 +44,8 @@ SupportRefit::SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMat
     for (SparseMatrixd::InnerIterator it(K_, c); it; ++it) {
       const int ir = slot_(static_cast<int>(it.row() / 3));
       if (ir < 0) continue;
-      trip.emplace_back(3 * ir + static_cast<int>(it.row() % 3),
-                        3 * jc + static_cast<int>(c % 3), it.value());
+      trip.emplace_back(3 * ir + static_cast<int>(it.row() % 3), 3 * jc + static_cast<int>(c % 3),
+                        it.value());
     }
   }
   const int m = 3 * nf_;
