@@ -1,6 +1,7 @@
 #include "support_refit.h"
 
 #include <Eigen/Cholesky>
+#include <Eigen/Core>
 #include <chrono>
 #include <cmath>
 #include <string>
@@ -56,11 +57,13 @@ SupportRefit::SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMat
   lu_.factorize(Kff);
   require(lu_.info() == Eigen::Success, "K_ff is singular: the refit needs a clamped rim");
 
-  const SparseMatrixd KKt = Kff * SparseMatrixd(Kff.transpose());
-  const Eigen::MatrixXd KKt_dense(KKt);
-  Eigen::LLT<Eigen::MatrixXd> llt(KKt_dense);
-  require(llt.info() == Eigen::Success, "K_ff K_ff^T is not positive definite");
-  H_ = llt.solve(Eigen::MatrixXd::Identity(m, m));
+  // H = G^T G with G = K_ff^{-1}: the sparse LU solves the identity column by column (cheap:
+  // the factor is sparse), then a symmetric rank update forms H (half a dense product).
+  const Eigen::MatrixXd G = lu_.solve(Eigen::MatrixXd::Identity(m, m));
+  require(G.allFinite(), "K_ff is singular: the refit needs a clamped rim");
+  H_.setZero(m, m);
+  H_.selfadjointView<Eigen::Lower>().rankUpdate(G.transpose());
+  H_.triangularView<Eigen::StrictlyUpper>() = H_.transpose();
   setup_ms_ =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }

@@ -8,8 +8,9 @@
 // With the rim eliminated, F_free = F_raw + K_ff x (x = dU on free dofs), so x = G (f - F_raw)
 // with G = K_ff^{-1} and f the forces (zero off S). The minimum over f_S solves
 //     H_SS f_S = (H F_raw)_S,   H = G^T G = (K_ff K_ff^T)^{-1},
-// a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup, O(|S| n + |S|^3) per
-// frame), and one sparse LU solve with K_ff recovers the corrected displacement.
+// a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup: sparse LU solves of
+// the identity, then a symmetric rank update; O(|S| n + |S|^3) per frame), and one sparse LU
+// solve with K_ff recovers the corrected displacement.
 #pragma once
 
 #include <Eigen/Core>
