@@ -96,6 +96,18 @@ MembraneModel::MembraneModel(const Eigen::Ref<const RowMatrixX3d>& vertices,
   K_.makeCompressed();
 }
 
+void MembraneModel::add_stiffness(const SparseMatrixd& dK) {
+  const Eigen::Index m = 3 * static_cast<Eigen::Index>(n_nodes());
+  require(dK.rows() == m && dK.cols() == m,
+          "stiffness increment must be " + std::to_string(m) + " x " + std::to_string(m));
+  for (Eigen::Index k = 0; k < dK.outerSize(); ++k)
+    for (SparseMatrixd::InnerIterator it(dK, k); it; ++it)
+      require(std::isfinite(it.value()), "stiffness increment has a non-finite entry");
+  SparseMatrixd sum = K_ + dK;
+  sum.makeCompressed();
+  K_ = std::move(sum);
+}
+
 RowMatrixX3d MembraneModel::external_forces(const Eigen::Ref<const RowMatrixX3d>& U,
                                             double dp) const {
   require(U.rows() == n_nodes(), "U must be N x 3 with N = " + std::to_string(n_nodes()) +

@@ -35,6 +35,11 @@ class MembraneModel {
   // F_ext = K U - dp a n (N x 3, newtons). Throws InputError on bad shape or non-finite input.
   RowMatrixX3d external_forces(const Eigen::Ref<const RowMatrixX3d>& U, double dp) const;
 
+  // Adds dK (3N x 3N, N/m, finite) to the stiffness: the inflation terms of a prestressed
+  // membrane (geometric stiffness of its tension, load stiffness of the rest pressure), which
+  // need not be symmetric. Throws InputError on a wrong size or a non-finite entry.
+  void add_stiffness(const SparseMatrixd& dK);
+
  private:
   Eigen::VectorXd areas_;
   RowMatrixX3d normals_;

@@ -66,13 +66,16 @@ def test_daemon_on_simulated_scene_matches_ground_truth():
     want = truth[[f.frame_index % n_scene for f in frames]]
     pressing = np.linalg.norm(want, axis=1) > 2.0
     assert pressing.sum() >= 10, "the demo presses during the frames received"
-    # Loose agreement where the indenter presses: force points the same way (-z, into the
-    # dome) and has the right order of magnitude.
+    # Where the indenter presses: force points the same way (-z, into the dome) and has the
+    # right size. Measured 2026-11-23 (inflated model + refit): median ratio 0.996, 10-90 %
+    # 0.98-1.02, median cosine 0.999; the paper's estimate read a fraction of the truth here.
     g, w = got[pressing], want[pressing]
     assert np.all(g[:, 2] < 0)
     cos = np.sum(g * w, axis=1) / (np.linalg.norm(g, axis=1) * np.linalg.norm(w, axis=1))
-    assert np.median(cos) > 0.8
+    assert np.median(cos) > 0.95
     ratio = np.linalg.norm(g, axis=1) / np.linalg.norm(w, axis=1)
-    assert 0.3 < np.median(ratio) < 3.0
+    assert 0.9 < np.median(ratio) < 1.1
+    lo, hi = np.percentile(ratio, [10, 90])
+    assert 0.8 < lo and hi < 1.25
     # Contact where the truth says the indenter presses.
     assert np.mean([f.contact.any() for f, p in zip(frames, pressing, strict=True) if p]) > 0.8

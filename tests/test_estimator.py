@@ -31,10 +31,13 @@ def _field(seed: int = 0, depth: float = 8e-3) -> tuple[np.ndarray, float]:
     return U, 40_000.0 * depth
 
 
-def test_default_config_matches_paper():
+def test_default_config():
     c = EstimatorConfig()
-    assert (c.k_f, c.k_u, c.k_const, c.k_linear) == (0.3322, 537592.0, 2000.0, 2.0)
-    assert c.material == Material(1.317e6, 0.5, 0.65e-3)
+    # k_u, k_const, k_linear, nu and thickness are the paper's; E and k_f were chosen for the
+    # inflated model + refit on the calibration seeds.
+    assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.1, 537592.0, 2000.0, 2.0, 0.5)
+    assert c.material == Material(0.66e6, 0.5, 0.65e-3)
+    assert (c.inflation_pa, c.atmospheric_pa) == (5000.0, 101325.0)
     assert c.solver == SolverSettings()
     with pytest.raises(dataclasses.FrozenInstanceError):
         c.k_f = 1.0  # type: ignore[misc]
@@ -143,3 +146,93 @@ def test_pressure_only_gives_uniform_inward_pressure_before_regularisation():
     assert e.info.status == "solved"
     assert np.isfinite(e.normal_pressure).all()
     assert e.net_force[2] <= 1e-9
+
+
+# ------------------------------------------------------------------ inflated model + refit
+def _inflated_field(est: ForceEstimator, forces: dict[int, np.ndarray], dp: float) -> np.ndarray:
+    """Displacements under which the estimator's own model gives exactly ``forces`` on the
+    named interior nodes and zero elsewhere (rim clamped)."""
+    mesh = est.mesh
+    free = np.flatnonzero(mesh.interior)
+    fd = (3 * free[:, None] + np.arange(3)).ravel()
+    K = est.model.stiffness.tocsr()[fd][:, fd].toarray()
+    f = np.zeros((mesh.n_nodes, 3))
+    for i, v in forces.items():
+        f[i] = v
+    rhs = (f + dp * est.model.area_normals).ravel()[fd]
+    U = np.zeros(3 * mesh.n_nodes)
+    U[fd] = np.linalg.solve(K, rhs)
+    return U.reshape(-1, 3)
+
+
+def _top_nodes(k: int) -> list[int]:
+    mesh = _mesh()
+    return [int(i) for i in np.argsort(-mesh.vertices[:, 2])[:k]]
+
+
+def test_estimator_uses_the_reference_pressure_for_the_inflation():
+    mesh = _mesh()
+    cfg = EstimatorConfig()
+    assert ForceEstimator(mesh).inflation_pa == 5000.0
+    absolute = ForceEstimator(mesh, cfg, SimpleNamespace(pressure_pa=101325.0 + 4200.0))
+    assert absolute.inflation_pa == pytest.approx(4200.0)
+    gauge = ForceEstimator(mesh, cfg, SimpleNamespace(pressure_pa=3000.0))
+    assert gauge.inflation_pa == pytest.approx(3000.0)
+    assert cfg.gauge_pressure(None) == 5000.0 and cfg.gauge_pressure(-5.0) == 5000.0
+    assert gauge.model.tension > 0 and gauge.model.inflation_pa == pytest.approx(3000.0)
+    est = ForceEstimator(mesh)
+    est.attach(SimpleNamespace(track=None, reference=SimpleNamespace(pressure_pa=106580.0)))
+    assert est.inflation_pa == pytest.approx(5255.0) and est.model.inflation_pa == est.inflation_pa
+
+
+@pytest.mark.parametrize("force", [1.0, 3.0, 10.0])
+def test_refit_removes_the_lasso_shrinkage(force):
+    # A force the model represents exactly: the group lasso alone takes a roughly fixed amount
+    # off it, the refit on its support recovers it (the paper's estimate read 5-50 % of the
+    # truth on simulated touches).
+    est = ForceEstimator(_mesh())
+    nodes = _top_nodes(3)
+    U = _inflated_field(est, {i: np.array([0.0, 0.0, -force / 3]) for i in nodes}, 0.0)
+    e = est.estimate(U, 0.0)
+    lasso_F = est.model.external_forces(U + est.solver.solve_frame(U, 0.0).dU, 0.0)
+    lasso_net = float(np.linalg.norm(est.model.net_force(lasso_F)))
+    assert lasso_net < force - 0.05
+    assert np.linalg.norm(e.net_force) == pytest.approx(force, rel=1e-6)
+    assert set(np.flatnonzero(e.support)) == set(nodes)
+    assert set(np.flatnonzero(e.contact)) <= set(nodes) and e.contact.any()
+    assert "refit" in e.timings_ms
+
+
+def test_refit_is_the_smallest_correction_with_zero_force_off_the_support():
+    est = ForceEstimator(_mesh())
+    mesh = _mesh()
+    rng = np.random.default_rng(3)
+    U = rng.normal(scale=3e-4, size=(mesh.n_nodes, 3))
+    support = np.zeros(mesh.n_nodes, bool)
+    support[_top_nodes(6)] = True
+    V = np.asarray(est._refit.refit(U, 120.0, support))
+    F = est.model.external_forces(V, 120.0)
+    off = mesh.interior & ~support
+    assert np.abs(F[off]).max() < 1e-9 * max(1.0, np.abs(F).max())
+    assert np.all(V[mesh.boundary] == 0.0)
+    # Dense KKT: minimise ||x||^2 subject to the off-support force rows being zero.
+    free = np.flatnonzero(mesh.interior)
+    fd = (3 * free[:, None] + np.arange(3)).ravel()
+    od = (3 * np.flatnonzero(off)[:, None] + np.arange(3)).ravel()
+    U0 = U.copy()
+    U0[mesh.boundary] = 0.0
+    K = est.model.stiffness.tocsr()
+    b = (K @ U0.ravel() - 120.0 * est.model.area_normals.ravel())[od]
+    A = K[od][:, fd].toarray()
+    x = -A.T @ np.linalg.solve(A @ A.T, b)
+    assert np.allclose((V - U0).ravel()[fd], x, atol=1e-12, rtol=1e-7)
+
+
+def test_untouched_frame_gives_no_force_and_no_contact():
+    est = ForceEstimator(_mesh())
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        U = rng.normal(scale=1e-4, size=(_mesh().n_nodes, 3))
+        e = est.estimate(U, float(rng.normal(scale=5.0)))
+        assert not e.contact.any()
+        assert np.linalg.norm(e.net_force) < 0.05

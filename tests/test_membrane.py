@@ -254,3 +254,71 @@ def test_energy_is_invariant_under_rotating_the_mesh(axis, angle, seed):
     e1 = np.sum((U @ R.T) * m1.external_forces(U @ R.T, 0.0))
     assert e1 == pytest.approx(e0, rel=1e-9)
     assert np.allclose(m1.normals, m0.normals @ R.T, atol=1e-12)
+
+
+# ------------------------------------------------------------------ inflated linearisation
+def _spherical_cap(R: float = 0.06, a: float = 0.04) -> Mesh:
+    from bubble_rt.mesh import MeshGeometry
+
+    flat = Mesh.generate(390, MeshGeometry(semi_axis_x=a, semi_axis_y=a, dome_height=0.01))
+    v = flat.vertices.copy()
+    r2 = np.minimum(v[:, 0] ** 2 + v[:, 1] ** 2, a**2)
+    v[:, 2] = np.sqrt(R**2 - r2) - np.sqrt(R**2 - a**2)
+    return Mesh(v, flat.triangles, flat.boundary)
+
+
+def test_inflation_tension_is_young_laplace_on_a_spherical_cap():
+    from bubble_rt.estimation.membrane import inflation_tension
+
+    for R in (0.05, 0.08):
+        assert inflation_tension(_spherical_cap(R), 5000.0) == pytest.approx(
+            5000.0 * R / 2, rel=0.02
+        )
+
+
+def test_inflation_stiffness_is_tension_laplacian_minus_load_stiffness():
+    # Independent formulas: the P1 (cotangent) Laplacian times T0 per coordinate, and the load
+    # stiffness by central differences of the pressure's nodal forces p0 (area vector) / 3.
+    from bubble_rt.estimation.membrane import inflation_stiffness
+
+    mesh = Mesh.preset("coarse")
+    p0 = 5000.0
+    dK, T0 = inflation_stiffness(mesh, p0)
+    V, T = mesh.vertices, mesh.triangles
+    n = mesh.n_nodes
+    L = np.zeros((n, n))
+    for t in T:
+        for k in range(3):
+            i, j, o = t[k], t[(k + 1) % 3], t[(k + 2) % 3]
+            e1, e2 = V[i] - V[o], V[j] - V[o]
+            cot = e1 @ e2 / np.linalg.norm(np.cross(e1, e2))
+            L[i, j] -= cot / 2
+            L[j, i] -= cot / 2
+            L[i, i] += cot / 2
+            L[j, j] += cot / 2
+
+    def pressure_forces(x: np.ndarray) -> np.ndarray:
+        c = np.cross(x[T[:, 1]] - x[T[:, 0]], x[T[:, 2]] - x[T[:, 0]])
+        f = np.zeros_like(x)
+        for k in range(3):
+            np.add.at(f, T[:, k], p0 * c / 6.0)
+        return f.ravel()
+
+    u = np.random.default_rng(0).normal(size=(n, 3))
+    h = 1e-7
+    J_u = (pressure_forces(V + h * u) - pressure_forces(V - h * u)) / (2 * h)
+    want = T0 * np.kron(L, np.eye(3)) @ u.ravel() - J_u
+    assert np.allclose(dK @ u.ravel(), want, atol=1e-6 * np.abs(want).max())
+
+
+def test_inflated_model_keeps_rigid_translations_force_free_and_zero_pressure_is_the_paper():
+    mesh = Mesh.preset("coarse")
+    inflated = MembraneModel(mesh, inflation_pa=5000.0)
+    plain = MembraneModel(mesh)
+    assert inflated.tension > 100 and plain.tension == 0.0
+    U = np.tile([1e-3, -2e-3, 5e-4], (mesh.n_nodes, 1))
+    assert np.abs(inflated.external_forces(U, 0.0)).max() < 1e-9
+    assert (MembraneModel(mesh, inflation_pa=0.0).stiffness != plain.stiffness).nnz == 0
+    assert abs(inflated.stiffness - plain.stiffness).max() > 10.0
+    with pytest.raises(ValueError, match="inflation_pa"):
+        MembraneModel(mesh, inflation_pa=-1.0)

@@ -32,6 +32,13 @@ void bind_membrane(py::module_& m) {
            [](const bubble::MembraneModel& self) {
              return Eigen::SparseMatrix<double, Eigen::RowMajor>(self.stiffness());
            })
+      .def(
+          "add_stiffness",
+          [](bubble::MembraneModel& self, const bubble::SparseMatrixd& dK) {
+            py::gil_scoped_release release;
+            self.add_stiffness(dK);
+          },
+          py::arg("dK"))
       .def_property_readonly("areas", &bubble::MembraneModel::areas)
       .def_property_readonly("normals", &bubble::MembraneModel::normals)
       .def_property_readonly("area_normals", &bubble::MembraneModel::area_normals)

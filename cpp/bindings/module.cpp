@@ -7,6 +7,7 @@ namespace py = pybind11;
 
 void bind_membrane(py::module_& m);
 void bind_solver(py::module_& m);
+void bind_refit(py::module_& m);
 void bind_deformation(py::module_& m);
 void bind_sim(py::module_& m);
 void bind_render(py::module_& m);
@@ -18,6 +19,7 @@ PYBIND11_MODULE(_core, m) {
   py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
   bind_membrane(m);
   bind_solver(m);
+  bind_refit(m);
   bind_deformation(m);
   bind_sim(m);
   bind_render(m);

@@ -167,9 +167,10 @@ class EstimatorSection:
     mesh: str = "medium"
     #: Fit the mesh onto the membrane surface seen in the reference frames.
     fit_mesh: bool = True
-    k_f: float = 0.3322
+    #: Defaults: bubble_rt.estimation.estimator.EstimatorConfig (E fitted for the inflated model).
+    k_f: float = 0.1
     k_u: float = 537592.0
-    youngs_modulus: float = 1.317e6
+    youngs_modulus: float = 0.66e6
     poisson: float = 0.5
     thickness: float = 0.65e-3
     k_const: float = 2000.0

@@ -3,6 +3,15 @@
 Units: metres, pascals, newtons. Sign convention: ``F_ext(U, dp) = K U - dp * a_i * n_i`` is
 the force the object applies on each node; normal pressure ``p_i = -n_i . F_i / a_i`` is
 positive inward.
+
+``MembraneModel(mesh, material, inflation_pa=p0)`` linearises the *inflated* membrane
+consistently: K = K_material + K_geometric - K_load. The reference shape is held by a membrane
+tension T0 against the rest gauge pressure p0; T0 is the uniform isotropic tension that best
+balances p0 on the reference mesh (Young-Laplace, least squares over the interior nodes:
+T0 dA/dx_i = p0 a_i n_i). K_geometric = T0 * (P1 Laplacian of each triangle, per coordinate)
+is the stiffness of that tension against out-of-plane motion; K_load = d(p0 * area vector / 3)
+/ dx is the change of the rest pressure's nodal forces as the surface moves and turns (not
+symmetric). With p0 = 0 the model is the paper's (material stiffness only).
 """
 
 from __future__ import annotations
@@ -46,20 +55,104 @@ def _core():  # noqa: ANN202 - private extension module
     return core
 
 
+def _triangle_gradients(
+    V: NDArray[np.float64], T: NDArray[np.integer]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per triangle: area (T,), in-plane frame (T x 2 x 3: i_hat, j_hat) and the in-plane
+    gradients of the three linear shape functions (T x 2 x 3, 1/m)."""
+    x0, x1, x2 = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+    c = np.cross(x1 - x0, x2 - x0)
+    area = 0.5 * np.linalg.norm(c, axis=1)
+    k = c / (2.0 * area[:, None])
+    i = (x1 - x0) / np.linalg.norm(x1 - x0, axis=1)[:, None]
+    j = np.cross(k, i)
+    a1, b1 = ((x1 - x0) * i).sum(1), ((x1 - x0) * j).sum(1)
+    a2, b2 = ((x2 - x0) * i).sum(1), ((x2 - x0) * j).sum(1)
+    det = a1 * b2 - a2 * b1
+    G = np.zeros((len(T), 2, 3))
+    G[:, 0, 1], G[:, 0, 2] = b2 / det, -b1 / det
+    G[:, 1, 1], G[:, 1, 2] = -a2 / det, a1 / det
+    G[:, :, 0] = -G[:, :, 1] - G[:, :, 2]
+    return area, np.stack([i, j], axis=1), G
+
+
+def inflation_tension(mesh: Mesh, gauge_pressure_pa: float) -> float:
+    """Uniform membrane tension T0 (N/m) that best holds the reference mesh against the rest
+    gauge pressure (Young-Laplace, least squares over the interior nodes)."""
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    T = np.asarray(mesh.triangles)
+    area, frame, G = _triangle_gradients(V, T)
+    grad_area = np.zeros_like(V)  # d(total area)/dx: the nodal pull of a unit tension
+    area_vec = np.zeros_like(V)  # consistent a_i n_i: a third of each triangle's area vector
+    normal = np.cross(frame[:, 0], frame[:, 1])
+    for a in range(3):
+        np.add.at(grad_area, T[:, a], area[:, None] * (G[:, :, a, None] * frame).sum(axis=1))
+        np.add.at(area_vec, T[:, a], area[:, None] * normal / 3.0)
+    interior = mesh.interior
+    g, b = grad_area[interior], area_vec[interior]
+    return float(gauge_pressure_pa) * float((g * b).sum() / (g * g).sum())
+
+
+def inflation_stiffness(mesh: Mesh, gauge_pressure_pa: float) -> tuple[sp.csr_matrix, float]:
+    """(K_geometric - K_load, T0): the inflation terms of the linearised membrane (3N x 3N,
+    N/m, scipy CSR) and the tension T0 (N/m) from :func:`inflation_tension`."""
+    p0 = _validate.finite_scalar("gauge_pressure_pa", gauge_pressure_pa)
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    T = np.asarray(mesh.triangles)
+    n = len(V)
+    tension = inflation_tension(mesh, p0)
+    area, _, G = _triangle_gradients(V, T)
+    lap = (area * tension)[:, None, None] * np.einsum("tka,tkb->tab", G, G)  # T x 3 x 3
+    rows, cols, vals = [], [], []
+    for a in range(3):
+        for b in range(3):
+            for d in range(3):
+                rows.append(3 * T[:, a] + d)
+                cols.append(3 * T[:, b] + d)
+                vals.append(lap[:, a, b])
+    # Load stiffness: the nodal force of p0 on a triangle is p0 (x1 - x0) x (x2 - x0) / 6 on
+    # each corner; its derivative by x_k is p0 / 6 [x_{k+2} - x_{k+1}]_x. Subtracted.
+    X = [V[T[:, m]] for m in range(3)]
+    for k in range(3):
+        e = X[(k + 2) % 3] - X[(k + 1) % 3]
+        skew = np.zeros((len(T), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2] = -e[:, 2], e[:, 1]
+        skew[:, 1, 0], skew[:, 1, 2] = e[:, 2], -e[:, 0]
+        skew[:, 2, 0], skew[:, 2, 1] = -e[:, 1], e[:, 0]
+        for j in range(3):
+            for r in range(3):
+                for c in range(3):
+                    rows.append(3 * T[:, j] + r)
+                    cols.append(3 * T[:, k] + c)
+                    vals.append(-(p0 / 6.0) * skew[:, r, c])
+    dK = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
+    )
+    return dK, tension
+
+
 class MembraneModel:
     """Constant-strain-triangle membrane of a mesh, built once per mesh and material.
 
     Attributes:
         mesh: the reference (inflated, untouched) mesh.
         material: the Material used.
+        inflation_pa: rest gauge pressure p0 (Pa) the model is linearised about (0: the
+            paper's uninflated model).
+        tension: inflation tension T0 (N/m; 0 when inflation_pa is 0).
         areas: (N,) lumped areas a_i (m^2), a third of each incident triangle.
         normals: (N, 3) area-weighted outward unit normals.
         area_normals: (N, 3) a_i * n_i (m^2), the force per pascal of pressure.
     """
 
-    def __init__(self, mesh: Mesh, material: Material | None = None) -> None:
+    def __init__(
+        self, mesh: Mesh, material: Material | None = None, inflation_pa: float = 0.0
+    ) -> None:
         self.mesh = mesh
         self.material = material or Material()
+        self.inflation_pa = _validate.finite_scalar("inflation_pa", inflation_pa)
+        if self.inflation_pa < 0:
+            raise ValueError(f"inflation_pa must be >= 0, got {self.inflation_pa}")
         m = self.material
         self._core = _core()._Membrane(
             np.ascontiguousarray(mesh.vertices, dtype=np.float64),
@@ -72,6 +165,10 @@ class MembraneModel:
         self.normals: NDArray[np.float64] = _readonly(self._core.normals)
         self.area_normals: NDArray[np.float64] = _readonly(self._core.area_normals)
         self._interior = np.ascontiguousarray(mesh.interior, dtype=bool)
+        self.tension = 0.0
+        if self.inflation_pa > 0:
+            dK, self.tension = inflation_stiffness(mesh, self.inflation_pa)
+            self._core.add_stiffness(sp.csc_matrix(dK))
 
     @property
     def n_nodes(self) -> int:
@@ -108,7 +205,7 @@ class MembraneModel:
         return np.asarray(_core()._net_force(F, self._interior))
 
     def __repr__(self) -> str:
-        return f"MembraneModel({self.mesh!r}, {self.material!r})"
+        return f"MembraneModel({self.mesh!r}, {self.material!r}, inflation_pa={self.inflation_pa})"
 
 
 def _readonly(a: NDArray) -> NDArray:

@@ -143,8 +143,9 @@ class Pipeline:
     def set_reference(self, reference: Reference) -> None:
         """Measure against a new untouched state (tare); the mesh stays."""
         self.reference = reference
-        if self.kind.uses_reference:
-            self.estimator = self._build_estimator()
+        # Every kind depends on the reference: the FEM model is linearised about its rest
+        # pressure, the frictionless baseline reads its surface.
+        self.estimator = self._build_estimator()
         self._build_tracker()
 
     @property

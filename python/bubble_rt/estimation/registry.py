@@ -5,8 +5,9 @@ A kind says how to build its estimator and how the pipeline drives it:
 * ``tracked``: the estimator works on node displacements (``estimate(U, dp)``), so the
   pipeline's first stage tracks the deformation (flow + lifting); otherwise the estimator
   reads the frame itself (``process(frame)``) and the first stage has nothing to do;
-* ``uses_reference``: the estimator is built from the reference capture, so a tare rebuilds it
-  (the FEM estimator depends on the mesh only and keeps its factorisation);
+* ``uses_reference``: the estimator cannot be built without the camera and the reference
+  capture (the FEM estimator takes the reference's rest pressure when there is one); a tare
+  rebuilds every kind's estimator;
 * ``params``: the ``[estimator]`` keys it can change while running (``set_params``).
 
 Builders import their estimator when called, so this module stays cheap to import.
@@ -74,7 +75,7 @@ def make_estimator(
 def _fem(mesh: Any, config: Any, camera: Any, reference: Any) -> Any:
     from bubble_rt.estimation.estimator import ForceEstimator
 
-    return ForceEstimator(mesh, config)
+    return ForceEstimator(mesh, config, reference)
 
 
 def _frictionless(mesh: Any, config: Any, camera: Any, reference: Any) -> Any:

@@ -21,10 +21,13 @@ class Estimate:
         normal_pressure: (N,) -n . contact_pressure (Pa, inward positive).
         contact: (N,) bool contact mask.
         net_force: (3,) sum of node_forces over non-rim nodes (N).
-        displacements: N x 3 corrected displacements U + dU (m), zero on the rim.
+        displacements: N x 3 corrected displacements U + dU (m), zero on the rim (refitted).
         info: SolverInfo of the solve.
-        timings_ms: stage -> milliseconds ("solve", "post"; "flow", "lift" from process()).
+        timings_ms: stage -> milliseconds ("solve", "refit", "post"; "flow", "lift" from
+            process()).
         valid_node_fraction: fraction of nodes the deformation stage measured (1.0 for U given).
+        support: (N,) bool, the group lasso's support (interior nodes that carry force; empty
+            for estimators without one).
     """
 
     node_forces: NDArray[np.float64]
@@ -36,3 +39,4 @@ class Estimate:
     info: SolverInfo
     timings_ms: dict[str, float] = field(default_factory=dict)
     valid_node_fraction: float = 1.0
+    support: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))

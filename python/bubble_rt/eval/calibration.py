@@ -33,7 +33,7 @@ from bubble_rt.estimation.estimator import EstimatorConfig
 from bubble_rt.eval import CALIB_SEED_BASE, FanOut
 
 PARAMS = ("E", "k_f", "k_u")
-#: Paper defaults (method.md section 3): the EstimatorConfig defaults.
+#: The estimator's defaults (EstimatorConfig), where the search starts.
 DEFAULTS: dict[str, float] = {
     "E": EstimatorConfig().material.E,
     "k_f": EstimatorConfig().k_f,

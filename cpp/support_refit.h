@@ -1,0 +1,51 @@
+// Relaxed group lasso: the forces re-estimated on the group lasso's support without its L1
+// term (the debiasing step of the force estimate).
+//
+// The group lasso finds which nodes carry force (its support) but takes a roughly fixed amount
+// off every force it keeps. Given the support S, the refit keeps the data term and drops the
+// penalty: the smallest correction dU (rim exactly zero) whose forces vanish off S,
+//     minimise ||dU||^2  subject to  F_ext(U + dU, dp)_i = 0 for interior i not in S.
+// With the rim eliminated, F_free = F_raw + K_ff x (x = dU on free dofs), so x = G (f - F_raw)
+// with G = K_ff^{-1} and f the forces (zero off S). The minimum over f_S solves
+//     H_SS f_S = (H F_raw)_S,   H = G^T G = (K_ff K_ff^T)^{-1},
+// a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup: sparse LU solves of
+// the identity, then a symmetric rank update; O(|S| n + |S|^3) per frame), and one sparse LU
+// solve with K_ff recovers the corrected displacement.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/SparseCore>
+#include <Eigen/SparseLU>
+
+#include "membrane.h"
+
+namespace bubble {
+
+class SupportRefit {
+ public:
+  // K: 3N x 3N stiffness (need not be symmetric; K_ff must be invertible); area_normals: N x 3
+  // (a_i n_i); boundary: rim node indices. Throws InputError on bad input or a singular K_ff.
+  SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMatrixX3d>& area_normals,
+               const Eigen::Ref<const Eigen::VectorXi>& boundary);
+
+  // Corrected displacements V = U + dU (N x 3, rim rows exactly 0) for displacements U (N x 3,
+  // m), pressure change dp (Pa) and the support (N bools; rim entries are ignored: the rim
+  // always carries its reaction). Throws InputError on a wrong shape or non-finite input.
+  RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
+                     const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const;
+
+  int n_nodes() const { return n_; }
+  double setup_time_ms() const { return setup_ms_; }
+
+ private:
+  int n_ = 0, nf_ = 0;
+  Eigen::VectorXi free_;  // free index -> node
+  Eigen::VectorXi slot_;  // node -> free index, -1 on the rim
+  SparseMatrixd K_;
+  RowMatrixX3d an_;
+  Eigen::SparseLU<SparseMatrixd> lu_;  // K_ff
+  Eigen::MatrixXd H_;                  // (K_ff K_ff^T)^{-1}, 3 nf x 3 nf
+  double setup_ms_ = 0;
+};
+
+}  // namespace bubble
