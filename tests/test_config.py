@@ -137,3 +137,15 @@ def test_config_check_command_names_key(tmp_path, capsys):
     p.write_text("[flow]\nmethod = 'magic'\n")
     assert main(["config", "check", str(p)]) == 2
     assert "flow.method" in capsys.readouterr().err
+
+
+def test_estimator_section_defaults_are_the_estimators():
+    """`[estimator]` defaults must be EstimatorConfig's: the daemon, `estimate` and `eval` all
+    run the same default estimator."""
+    from bubble_rt.config import DaemonConfig
+    from bubble_rt.estimation.estimator import CONFIG_KEYS, EstimatorConfig
+
+    section, est = DaemonConfig().estimator, EstimatorConfig()
+    for key, (name, sub) in CONFIG_KEYS.items():
+        value = getattr(est, name) if sub is None else getattr(getattr(est, name), sub)
+        assert getattr(section, key) == value, key
