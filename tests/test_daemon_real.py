@@ -44,6 +44,7 @@ def test_replay_of_real_recording_gives_no_force_without_contact(tmp_path):
         assert np.all(np.isfinite(f.node_forces)) and np.all(np.isfinite(f.net_force))
         assert {"flow", "lift", "solve"} <= set(f.timings_ms)
         assert f.solver_status in ("solved", "max_iter_reached", "time_limit_reached")
-    # The membrane is untouched: only sensor noise, no sizeable force, little contact.
-    assert max(np.linalg.norm(f.net_force) for f in frames) < 1.0
-    assert np.mean([f.contact.mean() for f in frames]) < 0.05
+    # The membrane is untouched: sensor noise must read as no contact and almost no force
+    # (issue 12's target on these real frames: no contact node, |f| < 0.2 N).
+    assert max(np.linalg.norm(f.net_force) for f in frames) < 0.2
+    assert not any(f.contact.any() for f in frames)
