@@ -33,7 +33,7 @@ import zmq
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
-from bubble_rt.config import DaemonConfig
+from bubble_rt.config import LIVE_PARAMS, DaemonConfig, param_problem
 from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
@@ -233,26 +233,21 @@ class DaemonError(RuntimeError):
     """The daemon cannot start (socket in use, source missing, ...)."""
 
 
-PARAM_CONFIG_KEYS = {
-    "k_f": "k_f",
-    "k_u": "k_u",
-    "youngs_modulus": "youngs_modulus",
-    "k_const": "k_const",
-    "k_linear": "k_linear",
-}
+PARAM_CONFIG_KEYS = {k: k for k in LIVE_PARAMS}
 
 
 def validate_params(params: dict[str, float]) -> str | None:
-    """None when the Params are acceptable, else the error text naming the parameter."""
+    """None when the Params are acceptable, else the error text naming the parameter.
+
+    The ranges are the configuration's (``bubble_rt.config.ESTIMATOR_RANGES``): nothing is
+    applied unless every value given is acceptable.
+    """
     if not params:
         return "set_params: no parameter given (set one of " + ", ".join(PARAM_CONFIG_KEYS) + ")"
     for k, v in params.items():
-        if not math.isfinite(v):
-            return f"set_params: {k} must be finite, got {v}"
-        if k in ("k_f", "k_u", "youngs_modulus") and v <= 0:
-            return f"set_params: {k} must be > 0, got {v}"
-        if k in ("k_const", "k_linear") and v < 0:
-            return f"set_params: {k} must be >= 0, got {v}"
+        err = param_problem(k, v)
+        if err:
+            return f"set_params: {k} {err}"
     return None
 
 
