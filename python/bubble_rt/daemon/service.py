@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import LIVE_PARAMS, DaemonConfig, param_problem
+from bubble_rt.daemon import faults
 from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
@@ -48,8 +49,9 @@ from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 from bubble_rt.mesh import Mesh
 
-#: Largest message the control socket accepts at the transport level (bigger: dropped by ZMQ).
-CONTROL_MAX_TRANSPORT_BYTES = 16 * 1024 * 1024
+#: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
+#: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
+CONTROL_MAX_TRANSPORT_BYTES = protocol.MAX_MESSAGE_BYTES
 
 
 class Processor(Protocol):
@@ -285,6 +287,7 @@ class Daemon:
         self._ref_frames: list[Frame] = []
         self._collecting: list[Frame] = []
         self.recorder: Any = None
+        self._recording_fault_counted = False
         self.seq = 0
         self.frames_published = 0
         self.errors: dict[str, int] = {}
@@ -332,7 +335,11 @@ class Daemon:
         self.pub_address = str(self.pub.getsockopt_string(zmq.LAST_ENDPOINT))
         self.control_address = str(self.ctl.getsockopt_string(zmq.LAST_ENDPOINT))
         if cfg.recording.path:
-            self._start_recording(cfg.recording.path)
+            try:
+                self._start_recording(cfg.recording.path, cfg.recording.overwrite)
+            except ValueError as exc:
+                self._close_sockets()
+                raise DaemonError(f"cannot record: {exc}") from exc
         cam.start()
         if self._pressure_src is not None:
             self._pressure_src.start()
@@ -419,6 +426,14 @@ class Daemon:
         except Exception as exc:
             self._error("reference", exc)
             given = None
+        if given and cam.pressure_out is not self.pressure_buffer:
+            # Sim/recorded reference frames carry their own pressure: use the sensor's.
+            paired = None
+            while paired is None and not self._stop.is_set():
+                paired = faults.reference_with_pressure(list(given), self.pressure_buffer.at)
+                if paired is None:
+                    self._stop.wait(0.05)
+            given = paired
         if given:
             self._install_reference(list(given))
         two_stage = cfg.processing.pipeline == "two_stage"
@@ -510,6 +525,12 @@ class Daemon:
             vf = float(getattr(est, "valid_node_fraction", 1.0))
             if vf < 0.5:
                 reasons.append(f"only {vf:.0%} of nodes tracked")
+            for problem in (
+                faults.solver_problem(getattr(est, "info", None)),
+                faults.forces_problem(forces, est.net_force),
+            ):
+                if problem:
+                    reasons.append(problem)
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
             if dp is None:
@@ -584,6 +605,15 @@ class Daemon:
             return pb.Status.STARTING, reason
         if cam_reason:
             return pb.Status.DEGRADED, cam_reason
+        rec = self.recorder
+        if rec is not None and rec.failed:
+            if not self._recording_fault_counted:
+                self._recording_fault_counted = True
+                self._error("recording", rec.failed)
+            return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
+        bad = faults.bad_frame_reason(cam, now)
+        if bad:
+            return pb.Status.DEGRADED, bad
         if self.frames_published == 0:
             reason = "reference captured, waiting for the first force frame"
             if self.last_error:
@@ -612,8 +642,10 @@ class Daemon:
             frame_rate_hz=rate,
             frames_published=self.frames_published,
             frames_dropped=self.frames_dropped,
-            recording=self.recorder is not None,
+            recording=faults.recording_state(self.recorder)[0],
             recording_path=str(self.recorder.path) if self.recorder is not None else "",
+            recording_error=faults.recording_state(self.recorder)[1],
+            recording_dropped=faults.recording_state(self.recorder)[2],
             mesh_id=self.mesh_msg.mesh_id if self.mesh_msg is not None else "",
             uptime_s=now - self._started_at,
         )
@@ -624,16 +656,9 @@ class Daemon:
             msg.latency.p99_ms, msg.latency.max_ms = float(p99), float(lat.max())
         srcs = [self._camera_src] + ([self._pressure_src] if self._pressure_src else [])
         for s in srcs:
-            if s is None:
-                continue
-            msg.sources.add(
-                name=s.stats.name,
-                received=s.stats.received,
-                errors=s.stats.n_errors,
-                last_error=s.stats.last_error,
-                age_s=s.stats.age(now),
-            )
-        msg.sources.add(name="daemon", errors=sum(self.errors.values()), last_error=self.last_error)
+            if s is not None:
+                faults.add_source_stats(msg, s.stats, now)
+        faults.add_daemon_stats(msg, dict(self.errors), self.last_error)
         return msg
 
     # ---------------------------------------------------------------- control
@@ -719,41 +744,35 @@ class Daemon:
             self._tare_requested = True
             return protocol.ok_reply()
         if kind == "record_start":
-            if self.recorder is not None:
-                return protocol.error_reply(f"already recording to {self.recorder.path}")
-            path = req.record_start.path or str(
-                Path(self.config.recording.directory)
-                / time.strftime("bubble_rt-%Y%m%d-%H%M%S.mcap", time.gmtime())
-            )
+            rec = self.recorder
+            if rec is not None and not rec.failed:
+                return protocol.error_reply(f"already recording to {rec.path}")
             try:
-                self._start_recording(path)
+                path = faults.recording_path(
+                    req.record_start.path, self.config.recording.directory
+                )
+                self._start_recording(str(path), req.record_start.overwrite)
             except Exception as exc:
-                return protocol.error_reply(f"record_start: cannot write {path}: {exc}")
-            return protocol.ok_reply(recording_path=str(Path(path).resolve()))
+                return protocol.error_reply(f"record_start: refused: {exc}")
+            if rec is not None:  # a failed recording is replaced by the new one
+                rec.close(timeout=0.0)
+            return protocol.ok_reply(recording_path=str(path.resolve()))
         if kind == "record_stop":
             rec = self.recorder
             if rec is None:
                 return protocol.error_reply("record_stop: not recording")
             self.recorder = None
-            rec.close()
-            return protocol.ok_reply(recording_path=str(rec.path.resolve()))
+            ok, text = faults.stop_recorder(rec)
+            if not ok:
+                return protocol.error_reply(text)
+            return protocol.ok_reply(recording_path=text)
         return protocol.error_reply(f"unknown request {kind!r}")  # pragma: no cover
 
-    def _start_recording(self, path: str) -> None:
-        from bubble_rt.io.mcap import Recorder
-
-        rc = self.config.recording
-        rec = Recorder(
-            path,
-            self.camera,
-            self.mesh_msg,
-            inputs=rc.inputs,
-            chunk_size=rc.chunk_size,
-            compression=rc.compression,
-            queue_size=rc.queue,
+    def _start_recording(self, path: str, overwrite: bool = False) -> None:
+        rec = faults.start_recorder(
+            path, self.config, self.camera, self.mesh_msg, self._ref_frames, overwrite
         )
-        if self._ref_frames:
-            rec.write_reference(self._ref_frames)
+        self._recording_fault_counted = False
         self.recorder = rec
 
 
