@@ -18,14 +18,12 @@ the daemon always works on the newest data and its latency never builds up.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -748,9 +746,7 @@ class Daemon:
             if rec is not None and not rec.failed:
                 return protocol.error_reply(f"already recording to {rec.path}")
             try:
-                path = faults.recording_path(
-                    req.record_start.path, self.config.recording.directory
-                )
+                path = faults.recording_path(req.record_start.path, self.config.recording.directory)
                 self._start_recording(str(path), req.record_start.overwrite)
             except Exception as exc:
                 return protocol.error_reply(f"record_start: refused: {exc}")

@@ -57,6 +57,7 @@ def too_large(size: int) -> str:
         )
     return f"request too large: {size} bytes (limit {MAX_REQUEST_BYTES} bytes)"
 
+
 STATE_NAMES = {
     pb.Status.STARTING: "starting",
     pb.Status.RUNNING: "running",

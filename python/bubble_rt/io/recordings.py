@@ -176,7 +176,9 @@ class Recording:
                     )
             except Exception as exc:
                 if faults:
-                    text = str(exc) if isinstance(exc, FrameError) else f"{type(exc).__name__}: {exc}"
+                    text = (
+                        str(exc) if isinstance(exc, FrameError) else f"{type(exc).__name__}: {exc}"
+                    )
                     yield FrameFault(i, f"{self.path.name} frame {i}", text)
                 continue
             yield frame
