@@ -64,7 +64,7 @@ def start_recorder(
     return rec
 
 
-def stop_recorder(rec: Any, timeout: float = 2.0) -> tuple[bool, str]:
+def stop_recorder(rec: Any, timeout: float = 1.5) -> tuple[bool, str]:
     """Finalise a recording, waiting at most ``timeout`` s: (ok, path or error text)."""
     done = rec.close(timeout=timeout)
     where = str(Path(rec.path).resolve()) if str(rec.path) else str(rec.path)

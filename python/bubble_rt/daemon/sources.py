@@ -504,7 +504,8 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
     src.name = f"replay:{p.name}"
     src.stats.name = src.name
     src.restart_on_error = False
-    src.camera_check = True
+    # Frames are checked against the recording's camera when the file states it.
+    src.camera_check = getattr(rec, "has_camera_info", True)
     src.recording_report = report  # type: ignore[attr-defined]
     if report is not None and not report.complete:
         text = report.summary()

@@ -112,7 +112,8 @@ def open_new_file(path: str | Path, overwrite: bool = False) -> Any:
             raise RecordingPathError(f"{p}: exists and is not a regular file ({_kind(st.st_mode)})")
         if not overwrite:
             raise RecordingPathError(
-                f"{p}: file exists (not overwritten; ask for overwrite to replace it)"
+                f"{p}: file exists, not overwritten (replace it with --overwrite, "
+                "record_start overwrite = true or recording.overwrite = true)"
             )
     flags = os.O_WRONLY | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
     flags |= 0 if overwrite else os.O_EXCL
@@ -495,6 +496,8 @@ class McapRecording:
         self._n = 0
         self.report = ReadReport(str(self.path))
         has_camera_info = False
+        #: The file has its camera_info (else ``camera`` is the D405 default).
+        self.has_camera_info = False
         for topic, msg, _, _ in iter_messages(self.path, self.report):
             if topic == TOPIC_CAMERA_INFO and not has_camera_info:
                 try:
@@ -506,6 +509,7 @@ class McapRecording:
                 self.mesh = msg
             elif topic == TOPIC_PRESSURE:
                 self._n += 1
+        self.has_camera_info = has_camera_info
         self.frames_indexed = self.report.topic_indexed.get(TOPIC_PRESSURE)
         if self._n == 0 and self.report.topic_messages.get(TOPIC_REF_PRESSURE, 0) == 0:
             raise McapFileError(f"{self.path}: no frame in the recording ({self.report.summary()})")
