@@ -681,3 +681,17 @@ def test_status_counts_faults_per_kind():
     assert st.sources["scripted"]["error_counts"] == {"disconnected": 1}
     assert st.sources["scripted"]["errors"] == 1
     assert st.sources["daemon"]["error_counts"] == {"estimator": 2}
+
+
+def test_serve_refuses_to_record_over_an_existing_file(tmp_path, capsys):
+    from bubble_rt.cli import main
+    from daemon_fakes import free_port
+
+    root = tmp_path / "rec"
+    make_punyo(root, n=3)
+    keep = tmp_path / "run.mcap"
+    keep.write_text("an earlier run\n")
+    net = ["--pub", f"tcp://127.0.0.1:{free_port()}", "--control", f"tcp://127.0.0.1:{free_port()}"]
+    args = ["serve", "--camera", f"replay:{root}", "--record", str(keep), "--duration", "0.1"]
+    assert main(args + net) == 1
+    assert "file exists" in capsys.readouterr().err and keep.read_text() == "an earlier run\n"

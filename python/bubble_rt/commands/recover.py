@@ -33,8 +33,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"bubble-rt recover: {exc}", file=sys.stderr)
         return 1
     state = "was closed" if report.closed else "was not closed"
-    print(f"{args.input} {state}: {report.summary()}")
-    for problem in report.problems:
+    print(f"{args.input} {state}: {report.summary(hint=False)}")
+    for problem in report.problems[:20]:
         print(f"  {problem}")
+    if len(report.problems) > 20:
+        print(f"  ... and {len(report.problems) - 20} more")
     print(f"wrote {report.messages - report.messages_undecodable} messages to {out}")
     return 0

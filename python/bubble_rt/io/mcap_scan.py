@@ -30,7 +30,7 @@ from typing import Any
 
 MAGIC = b"\x89MCAP0\r\n"
 
-_HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
+_FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
 _STATISTICS, _DATA_END = 0x0B, 0x0F
 _KNOWN = set(range(0x01, 0x10))
 _FOOTER_SIZE = 1 + 8 + 20
@@ -68,11 +68,12 @@ class ReadReport:
         return (
             self.closed
             and not self.problems
+            and not self.messages_undecodable
             and (self.messages_indexed is None or self.messages >= self.messages_indexed)
         )
 
-    def summary(self) -> str:
-        """One line: what was read and what was lost."""
+    def summary(self, hint: bool = True) -> str:
+        """One line: what was read and what was lost (``hint``: how to recover the file)."""
         name = Path(self.path).name
         parts = [f"{name}: read {self.messages} messages"]
         if self.messages_indexed is not None:
@@ -84,10 +85,10 @@ class ReadReport:
         if self.messages_undecodable:
             parts.append(f"{self.messages_undecodable} undecodable message(s)")
         if not self.closed:
-            parts.append(
-                "not closed (no summary or footer: the recorder was killed or the disk filled); "
-                "`bubble-rt recover` rewrites it as a finalised file"
-            )
+            text = "not closed (no summary or footer: the recorder was killed or the disk filled)"
+            if hint:
+                text += "; `bubble-rt recover` rewrites it as a finalised file"
+            parts.append(text)
         return "; ".join(parts)
 
 
