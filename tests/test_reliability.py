@@ -232,7 +232,7 @@ def test_recorder_write_failure_is_reported_at_once(tmp_path):
     threading.excepthook = lambda a: seen.append(a.exc_value)  # type: ignore[assignment]
     try:
         rec = Recorder("/dev/full", CAM, file=open("/dev/full", "wb"))  # noqa: SIM115
-        assert wait_for(lambda: rec.failed != "", 1.0)
+        assert wait_for(lambda: rec.failed != "", 2.0)
         assert "No space left on device" in rec.failed
         for i in range(5):
             rec.write_frame(make_frame(i))  # never raises, counted as dropped
@@ -255,7 +255,7 @@ def test_daemon_recording_failure_turns_status_to_error_and_stream_goes_on(monke
     try:
         with Controller(d.control_address) as c:
             c.record_start(str(tmp_path / "full.mcap"))
-            assert wait_for(lambda: c.status().recording_error != "", 2.0)
+            assert wait_for(lambda: c.status().recording_error != "", 3.0)
             st = c.status()
             assert st.state == "degraded" and "recording failed" in st.reason
             assert "No space left on device" in st.reason and not st.recording
@@ -320,7 +320,7 @@ def test_record_start_refuses_a_fifo_without_blocking_the_control_thread(tmp_pat
                 c.record_start(str(fifo), overwrite=True)
             with pytest.raises(ControlError, match="FIFO"):
                 c.record_start(str(fifo))
-            assert time.monotonic() - t0 < 1.0
+            assert time.monotonic() - t0 < 1.5
             assert wait_for(lambda: c.status().state == "running")
     finally:
         d.stop()

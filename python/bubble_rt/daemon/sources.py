@@ -9,7 +9,9 @@ frames) feed a :class:`PressureBuffer`, a fixed-size ring of (time, pascals) sam
 
 Clock: every sample is stamped on arrival with the daemon's wall clock (``time.time()``,
 seconds), so camera and pressure from different devices share one time base and end-to-end
-latency (capture -> publish) is meaningful to subscribers on the same host.
+latency (capture -> publish) is meaningful to subscribers on the same host. Reference frames
+a source provides (the simulator's, a recording's) are restamped the same way
+(:func:`restamp_reference`): nothing downstream, recordings included, sees another clock.
 """
 
 from __future__ import annotations
