@@ -9,6 +9,7 @@ echo "== ruff";          python3 -m ruff check python tests bench
 echo "== ruff format";   python3 -m ruff format --check python tests bench
 echo "== clang-format";  find cpp \( -name '*.cpp' -o -name '*.h' \) -print0 | xargs -0 clang-format --dry-run --Werror
 echo "== mypy";          python3 -m mypy
+echo "== import-linter"; (cd python && lint-imports --config ../pyproject.toml)
 echo "== pytest"
 # Run from tests/ so the installed package (not the source tree) is what gets imported.
 cd tests && python3 -m pytest -q -p no:cacheprovider .

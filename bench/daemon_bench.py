@@ -6,6 +6,7 @@ the daemon's resident memory (VmRSS) after warm-up and at the end.
 
     OPENBLAS_NUM_THREADS=1 python3 bench/daemon_bench.py --minutes 10
     python3 bench/daemon_bench.py --minutes 1 --meshes medium --camera sim
+    python3 bench/daemon_bench.py --minutes 1 --meshes medium --foxglove   # with a viewer
 
 Target (issue 5): keeps up with a 30 Hz camera at 640 x 480 on the 390-node mesh with p99
 latency under 66 ms on a 2-core machine.
@@ -40,8 +41,23 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: float) -> dict:
+def run_one(
+    mesh: str,
+    minutes: float,
+    camera: str,
+    extra: list[str],
+    warmup_s: float,
+    foxglove: bool = False,
+) -> dict:
     pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    fox = None
+    if foxglove:  # serve --foxglove, with a client subscribed to every channel
+        import threading
+
+        from foxglove_client import connect
+
+        fox_addr = f"ws://127.0.0.1:{free_port()}"
+        extra = [*extra, "--foxglove", fox_addr]
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     cmd = [
         sys.executable,
@@ -63,9 +79,14 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
     lat: list[float] = []
     stages: dict[str, list[float]] = {}
     degraded = 0
+    fox_stop = None
     try:
         with Subscriber(pub, ctl, timeout_s=600) as sub:
             mesh_data = sub.fetch_mesh(600)
+            if foxglove:
+                fox = connect(fox_addr)
+                fox_stop = threading.Event()
+                threading.Thread(target=fox.run, args=(fox_stop,), daemon=True).start()
             t_warm = time.monotonic() + warmup_s
             for _ in sub.frames(timeout_s=30):
                 if time.monotonic() >= t_warm:
@@ -74,6 +95,8 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
             with Controller(ctl) as c:
                 st0 = c.status()
             t0 = time.monotonic()
+            fox_n0 = sum(fox.counts.values()) if fox else 0
+            fox_b0 = fox.bytes if fox else 0
             end = t0 + minutes * 60
             n = 0
             for f in sub.frames(timeout_s=30):
@@ -85,10 +108,15 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
                 if time.monotonic() >= end:
                     break
             elapsed = time.monotonic() - t0
+            fox_msgs = (sum(fox.counts.values()) - fox_n0) if fox else 0
+            fox_bytes = (fox.bytes - fox_b0) if fox else 0
             rss_end = rss_mb(proc.pid)
             with Controller(ctl) as c:
                 st1 = c.status()
     finally:
+        if fox_stop is not None and fox is not None:
+            fox_stop.set()
+            fox.close()
         proc.send_signal(signal.SIGINT)
         try:
             proc.wait(10)
@@ -111,6 +139,8 @@ def run_one(mesh: str, minutes: float, camera: str, extra: list[str], warmup_s: 
         "stage_p50_ms": {k: round(float(np.median(v)), 2) for k, v in sorted(stages.items())},
         "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1),
+        "foxglove_msgs_per_s": round(fox_msgs / elapsed, 1) if foxglove else None,
+        "foxglove_mb_per_s": round(fox_bytes / elapsed / 1e6, 2) if foxglove else None,
     }
 
 
@@ -121,11 +151,14 @@ def main() -> int:
     ap.add_argument("--camera", default="sim", help="camera source (default: the demo scene)")
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds ignored at the start")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument(
+        "--foxglove", action="store_true", help="serve --foxglove with a subscribed client"
+    )
     ap.add_argument("serve_args", nargs="*", help="extra `bubble-rt serve` arguments after --")
     args = ap.parse_args()
     rows = []
     for mesh in args.meshes.split(","):
-        r = run_one(mesh, args.minutes, args.camera, args.serve_args, args.warmup)
+        r = run_one(mesh, args.minutes, args.camera, args.serve_args, args.warmup, args.foxglove)
         rows.append(r)
         if args.json:
             print(json.dumps(r), flush=True)
@@ -138,6 +171,12 @@ def main() -> int:
                 flush=True,
             )
             print(f"         stage medians (ms): {r['stage_p50_ms']}", flush=True)
+            if args.foxglove:
+                print(
+                    f"         foxglove client: {r['foxglove_msgs_per_s']} msg/s,"
+                    f" {r['foxglove_mb_per_s']} MB/s",
+                    flush=True,
+                )
     return 0
 
 

@@ -19,7 +19,7 @@ import time
 import numpy as np
 from bubble_rt.estimation.membrane import MembraneModel
 from bubble_rt.estimation.solver import GroupLassoSolver, SolverSettings
-from bubble_rt.mesh import Mesh
+from bubble_rt.mesh import PRESETS, Mesh
 from bubble_rt.reference import GroupLassoProblem
 
 K_F, K_U = 0.3322, 537592.0
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         default=20,
         help="frames (evenly spread) also solved by the reference (0 = none)",
     )
-    ap.add_argument("--meshes", nargs="+", default=["coarse", "medium", "fine"])
+    ap.add_argument("--meshes", nargs="+", default=list(PRESETS))
     ap.add_argument("--tight", action="store_true", help="tight settings (gap ~1e-5)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     args = ap.parse_args(argv)

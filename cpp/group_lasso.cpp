@@ -273,28 +273,62 @@ void GroupLassoSolver::cold_start() {
   fresh_ = false;
 }
 
-void GroupLassoSolver::prox(const Eigen::VectorXd& v, double rho, Eigen::VectorXd& out) const {
-  // prox of sum_i wh_i ||z_i + bh_i|| / rho: shrink u = v + b blockwise, shift back.
-  for (int i = 0; i < n_; ++i) {
-    const Eigen::Vector3d u = v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
-    const double nu = u.norm(), t = wh_(i) / rho;
-    const double k = nu > t ? 1.0 - t / nu : 0.0;
-    out.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
-  }
+namespace {
+template <typename Block>
+void project_on_ball(Block&& y, double radius) {
+  const double nr = y.norm();
+  if (nr > radius) y *= radius / nr;
 }
+}  // namespace
+
+// A dual point y with A^T y, kept together: the dual value and its line searches need both,
+// and A^T y is the expensive part.
+struct GroupLassoSolver::DualPoint {
+  explicit DualPoint(Eigen::Index m, Eigen::Index nfd) : y(m), aty(nfd) {}
+  Eigen::VectorXd y, aty;
+};
+
+// What lives for one solve; allocated once per solve so the iterations do not allocate.
+struct GroupLassoSolver::SolveState {
+  SolveState(Clock::time_point start, Eigen::Index m, Eigen::Index nfd, int anderson_memory)
+      : t0(start),
+        rhs(nfd),
+        xt(nfd),
+        zt(m),
+        zr(m),
+        v(m),
+        zn(m),
+        tmp(m),
+        Ax(m),
+        ATy(nfd),
+        a(m, nfd),
+        b(m, nfd),
+        best(m, nfd),
+        dy(m),
+        da(nfd),
+        accelerate(anderson_memory > 0),
+        aa(std::max(anderson_memory, 1), 2 * m),
+        u(2 * m),
+        g(2 * m) {}
+  Clock::time_point t0;
+  double raw_force_scale = 0;  // rms nodal force at dU = 0, floors the force scale of rho
+  const BlockLDLT* ldlt = nullptr;
+  double rho = 0;
+  Eigen::VectorXd rhs, xt, zt, zr, v, zn, tmp;  // iteration scratch
+  Eigen::VectorXd Ax, ATy;                      // products at the checked iterate
+  DualPoint a, b, best;                         // dual candidates, best = last check's bound
+  bool have_best = false;
+  Eigen::VectorXd dy, da;  // line-search scratch
+  bool accelerate;
+  Anderson aa;
+  Eigen::VectorXd u, g;  // Anderson input and output
+  double pobj = 0, gap = 0, rp = 0, rd = 0;
+};
 
 SolverResult GroupLassoSolver::solve() {
   require(have_data_, "solve() called before update(U, dp)");
   const auto t0 = Clock::now();
-  if (fresh_) {
-    SolverResult again = last_;
-    again.info.iterations = 0;
-    again.info.factorizations = 0;
-    again.info.setup_time_ms = 0;
-    again.info.solve_time_ms = ms_since(t0);
-    return again;
-  }
-  const int m = 3 * n_, nfd = 3 * nf_;
+  if (fresh_) return repeat_last(ms_since(t0));
   SolverResult res;
   SolverInfo& info = res.info;
   factor_ms_ = 0;
@@ -307,6 +341,46 @@ SolverResult GroupLassoSolver::solve() {
     info.solve_time_ms = ms_since(t0);
     return res;
   }
+  start_iterates();
+  SolveState st(t0, 3 * n_, 3 * nf_, settings_.anderson_memory);
+  st.raw_force_scale = std::sqrt(bh_.squaredNorm() / n_);
+  set_frame_rho(st.raw_force_scale);
+  use_rho(st, &info.factorizations);
+  info.status = SolverStatus::max_iter_reached;
+  int k = 0;
+  for (k = 1; k <= settings_.max_iter; ++k) {
+    admm_iteration(st);
+    if (k % settings_.check_interval != 0 && k != settings_.max_iter) continue;
+    measure(st);
+    if (const auto status = termination(st)) {
+      info.status = *status;
+      break;
+    }
+    if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval)
+      adapt_rho(st, &info.factorizations);
+  }
+  write_result(st, std::min(k, settings_.max_iter), res);
+  remember_solution(st, res);
+  info.solve_time_ms = ms_since(t0);
+  if (fresh_) last_ = res;
+  return res;
+}
+
+// Identical input returns the identical answer: a caller re-solving an unchanged frame must
+// not see the iterate drift.
+SolverResult GroupLassoSolver::repeat_last(double elapsed_ms) const {
+  SolverResult again = last_;
+  again.info.iterations = 0;
+  again.info.factorizations = 0;
+  again.info.setup_time_ms = 0;
+  again.info.solve_time_ms = elapsed_ms;
+  return again;
+}
+
+// Warm start from the previous corrected displacement V = U + dU, not from dU: V is smooth
+// between frames, dU carries the previous frame's noise.
+void GroupLassoSolver::start_iterates() {
+  const int m = 3 * n_, nfd = 3 * nf_;
   if (settings_.warm_start && have_prev_) {
     yh_.resize(m);
     for (int i = 0; i < m; ++i) yh_(i) = s_ * Einv_(i) * dual_prev_(i / 3, i % 3);
@@ -319,176 +393,236 @@ SolverResult GroupLassoSolver::solve() {
     yh_.setZero(m);
   }
   zh_ = Ah_ * xh_;
+}
 
+// rho is the ratio of the dual scale (the weights) to the primal scale (a nodal force scale).
+double GroupLassoSolver::rho_target(double force_scale) const {
+  return settings_.rho * wh_.mean() / force_scale;
+}
+
+// Small moves are not worth a factorization.
+bool GroupLassoSolver::rho_should_move(double ratio) const {
+  return ratio > settings_.adaptive_rho_tolerance || ratio < 1.0 / settings_.adaptive_rho_tolerance;
+}
+
+// The previous frame's solution is the best predictor of this frame's forces (noise-only
+// frames leave forces ~1e-3 of the raw nodal forces and want a large rho; contacts leave large
+// forces and want a small one).
+void GroupLassoSolver::set_frame_rho(double raw_force_scale) {
+  const double fs = force_scale_ > 0 ? std::max(force_scale_, kMinForceRatio * raw_force_scale)
+                                     : kFirstForceRatio * raw_force_scale;
+  if (!(fs > 0)) return;
+  const double target = rho_target(fs);
+  if (!rho_set_ || rho_should_move(target / rho_of(rho_idx_))) {
+    rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(target)));
+    rho_set_ = true;
+  }
+}
+
+void GroupLassoSolver::use_rho(SolveState& st, int* factorizations) {
+  st.ldlt = &factor(rho_idx_, factorizations);
+  st.rho = rho_of(rho_idx_);
+}
+
+// The frame rule on the current iterate: a frame unlike the last one (a contact made or
+// released) gets its rho within the solve. The Anderson memory holds differences of the map
+// at the old rho, so it restarts.
+void GroupLassoSolver::adapt_rho(SolveState& st, int* factorizations) {
+  const double fs =
+      std::max(std::sqrt((st.Ax + bh_).squaredNorm() / n_), kMinForceRatio * st.raw_force_scale);
+  if (!(fs > 0)) return;
+  const double ratio = rho_target(fs) / st.rho;
+  if (!rho_should_move(ratio)) return;
+  rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(ratio * st.rho)));
+  rho_idx_ = std::clamp(rho_idx_, -80, 80);
+  use_rho(st, factorizations);
+  st.aa.reset();
+}
+
+void GroupLassoSolver::admm_iteration(SolveState& st) {
+  const int m = 3 * n_;
+  if (st.accelerate) {
+    st.u.head(m) = zh_;
+    st.u.tail(m) = yh_ / st.rho;
+  }
+  x_update(st);
+  over_relax(st);
+  z_update(st);
+  dual_update(st);
+  if (st.accelerate) anderson_step(st);
+}
+
+// (P + sigma I + rho A^T A) xt = sigma x + A^T (rho z - y): the factor is cached per rho, so
+// this is two triangular solves. zt = A xt feeds the over-relaxation.
+void GroupLassoSolver::x_update(SolveState& st) const {
+  st.tmp.noalias() = st.rho * zh_ - yh_;
+  Ab_.multiply_transposed(st.tmp, st.rhs);
+  st.rhs += settings_.sigma * xh_;
+  st.ldlt->solve(st.rhs, st.xt);
+  Ab_.multiply(st.xt, st.zt);
+}
+
+void GroupLassoSolver::over_relax(SolveState& st) {
   const double alpha = settings_.alpha;
-  Eigen::VectorXd rhs(nfd), xt(nfd), zt(m), zr(m), v(m), zn(m), Ax(m), ATy(nfd), tmp(m);
-  Eigen::VectorXd ya(m), yb(m), ybest(m), dy(m), atya(nfd), atyb(nfd), atybest(nfd), da(nfd);
-  bool have_best = false;
-  // rho from the data: the ratio of the dual scale (the weights) to the primal scale, the
-  // nodal forces of the solution. The previous frame's solution is the best predictor of this
-  // frame's (noise-only frames leave forces ~1e-3 of the raw nodal forces and want a large
-  // rho; contacts leave large forces and want a small one). Refactor only when it moves by
-  // more than the tolerance.
-  const double fb = std::sqrt(bh_.squaredNorm() / n_);
-  {
-    const double fs =
-        force_scale_ > 0 ? std::max(force_scale_, kMinForceRatio * fb) : kFirstForceRatio * fb;
-    if (fs > 0) {
-      const double target = settings_.rho * wh_.mean() / fs;
-      const double ratio = target / rho_of(rho_idx_);
-      if (!rho_set_ || ratio > settings_.adaptive_rho_tolerance ||
-          ratio < 1.0 / settings_.adaptive_rho_tolerance) {
-        rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(target)));
-        rho_set_ = true;
-      }
-    }
-  }
-  const BlockLDLT* ldlt = &factor(rho_idx_, &info.factorizations);
-  double rho = rho_of(rho_idx_);
-  info.status = SolverStatus::max_iter_reached;
-  int k = 0;
-  double pobj = 0, gap = 0, rp = 0, rd = 0;
-  const int mem = settings_.anderson_memory;
-  Anderson aa(std::max(mem, 1), 2 * m);
-  Eigen::VectorXd u(2 * m), g(2 * m);
-  for (k = 1; k <= settings_.max_iter; ++k) {
-    if (mem > 0) {
-      u.head(m) = zh_;
-      u.tail(m) = yh_ / rho;
-    }
-    tmp.noalias() = rho * zh_ - yh_;
-    Ab_.multiply_transposed(tmp, rhs);
-    rhs += settings_.sigma * xh_;
-    ldlt->solve(rhs, xt);
-    Ab_.multiply(xt, zt);
-    xh_ = alpha * xt + (1 - alpha) * xh_;
-    zr = alpha * zt + (1 - alpha) * zh_;
-    v = zr + yh_ / rho;
-    prox(v, rho, zn);
-    yh_ += rho * (zr - zn);
-    zh_.swap(zn);
-    if (mem > 0) {
-      g.head(m) = zh_;
-      g.tail(m) = yh_ / rho;
-      aa.step(u, g);
-      zh_ = g.head(m);
-      yh_ = rho * g.tail(m);
-    }
+  xh_ = alpha * st.xt + (1 - alpha) * xh_;
+  st.zr = alpha * st.zt + (1 - alpha) * zh_;
+}
 
-    const bool last = k == settings_.max_iter;
-    if (k % settings_.check_interval != 0 && !last) continue;
-    Ab_.multiply(xh_, Ax);
-    Ab_.multiply_transposed(yh_, ATy);
-    // Objective at x (unscaled, unitless).
-    pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
-    for (int i = 0; i < n_; ++i)
-      pobj += w_(i) * (Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i)).norm() * Einv_(3 * i);
-    // Dual bound d(y) = y.b - |A^T y|^2_{P^-1} / 2 at a feasible y (||y_i|| <= w_i), improved
-    // cheaply: (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where
-    // x leaves a force replaced by w_i F_i / ||F_i|| (the multiplier x asks for); the best point
-    // on the segment a-b, then on the segment to the best multiplier of the previous check, then
-    // the best scaling along the ray. All these stay feasible and need two products with A^T.
-    for (int cand = 0; cand < 2; ++cand) {
-      Eigen::VectorXd& y = cand == 0 ? ya : yb;
-      y = yh_;
-      for (int i = 0; i < n_; ++i) {
-        if (cand == 1) {
-          const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
-          const double fn = f.norm();
-          if (fn > 1e-9 * wh_(i) / rho) {
-            y.segment<3>(3 * i) = wh_(i) / fn * f;
-            continue;
-          }
-        }
-        const double nr = y.segment<3>(3 * i).norm();
-        if (nr > wh_(i)) y.segment<3>(3 * i) *= wh_(i) / nr;
-      }
-      Ab_.multiply_transposed(y, cand == 0 ? atya : atyb);
-    }
-    auto segment_max = [&](Eigen::VectorXd& y1, Eigen::VectorXd& a1, const Eigen::VectorXd& y2,
-                           const Eigen::VectorXd& a2) {
-      dy = y2 - y1;
-      da = a2 - a1;
-      const double dd = da.cwiseAbs2().cwiseQuotient(Pd_).sum();
-      if (!(dd > 0)) return;
-      const double t =
-          std::clamp((dy.dot(bh_) - a1.cwiseProduct(da).cwiseQuotient(Pd_).sum()) / dd, 0.0, 1.0);
-      y1 += t * dy;
-      a1 += t * da;
-    };
-    segment_max(ya, atya, yb, atyb);
-    if (have_best) segment_max(ya, atya, ybest, atybest);
-    {
-      const double lin = ya.dot(bh_);
-      const double quad = atya.cwiseAbs2().cwiseQuotient(Pd_).sum();
-      double tmax = std::numeric_limits<double>::infinity();
-      for (int i = 0; i < n_; ++i) {
-        const double nr = ya.segment<3>(3 * i).norm();
-        if (nr > 0) tmax = std::min(tmax, wh_(i) / nr);
-      }
-      double t = quad > 0 ? lin / quad : (lin > 0 ? tmax : 0.0);
-      t = std::clamp(t, 0.0, std::isfinite(tmax) ? tmax : 1.0);
-      ybest = t * ya;
-      atybest = t * atya;
-      have_best = true;
-    }
-    const double dual_h = ybest.dot(bh_) - 0.5 * atybest.cwiseAbs2().cwiseQuotient(Pd_).sum();
-    const double dobj = dual_h / s_ + rim_const_;
-    gap = std::max(pobj - dobj, 0.0);
-    rp = (Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
-    rd = (Pd_.cwiseProduct(xh_) + ATy).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
-    if (!std::isfinite(pobj) || !xh_.allFinite()) {
-      info.status = SolverStatus::non_finite_input;
-      break;
-    }
-    if (gap <= settings_.eps_abs + settings_.eps_rel * std::abs(pobj)) {
-      info.status = SolverStatus::solved;
-      break;
-    }
-    if (settings_.time_limit > 0 && ms_since(t0) > 1e3 * settings_.time_limit) {
-      info.status = SolverStatus::time_limit_reached;
-      break;
-    }
-    if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval) {
-      // The same rule as between frames, on the current iterate: a frame unlike the last one
-      // (a contact made or released) gets its rho within the solve.
-      const double fs = std::max(std::sqrt((Ax + bh_).squaredNorm() / n_), kMinForceRatio * fb);
-      const double ratio = settings_.rho * wh_.mean() / fs / rho;
-      if (fs > 0 && (ratio > settings_.adaptive_rho_tolerance ||
-                     ratio < 1.0 / settings_.adaptive_rho_tolerance)) {
-        rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(ratio * rho)));
-        rho_idx_ = std::clamp(rho_idx_, -80, 80);
-        ldlt = &factor(rho_idx_, &info.factorizations);
-        rho = rho_of(rho_idx_);
-        aa.reset();
-      }
-    }
+// The prox of sum_i wh_i ||z_i + bh_i|| / rho at v: the penalty acts on the force z + b, so
+// shrink u = v + b blockwise and shift back.
+void GroupLassoSolver::z_update(SolveState& st) const {
+  st.v = st.zr + yh_ / st.rho;
+  for (int i = 0; i < n_; ++i) {
+    const Eigen::Vector3d u = st.v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const double nu = u.norm(), t = wh_(i) / st.rho;
+    const double k = nu > t ? 1.0 - t / nu : 0.0;
+    st.zn.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
   }
+}
+
+void GroupLassoSolver::dual_update(SolveState& st) {
+  yh_ += st.rho * (st.zr - st.zn);
+  zh_.swap(st.zn);
+}
+
+// Anderson acceleration of the map (z, y / rho) -> (z, y / rho) of one iteration: the next z
+// and y depend on x only through the sigma term, so (z, y) is the state; y / rho puts both
+// halves on the scale of z.
+void GroupLassoSolver::anderson_step(SolveState& st) {
+  const int m = 3 * n_;
+  st.g.head(m) = zh_;
+  st.g.tail(m) = yh_ / st.rho;
+  st.aa.step(st.u, st.g);
+  zh_ = st.g.head(m);
+  yh_ = st.rho * st.g.tail(m);
+}
+
+void GroupLassoSolver::measure(SolveState& st) const {
+  Ab_.multiply(xh_, st.Ax);
+  Ab_.multiply_transposed(yh_, st.ATy);
+  st.pobj = objective(st.Ax);
+  st.gap = std::max(st.pobj - dual_bound(st), 0.0);
+  st.rp = (st.Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
+  st.rd = (Pd_.cwiseProduct(xh_) + st.ATy).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+}
+
+// Unscaled and unitless, so that eps_abs means the same on every mesh and in every unit.
+double GroupLassoSolver::objective(const Eigen::VectorXd& Ax) const {
+  double pobj = c_ * D_.cwiseProduct(xh_).squaredNorm() + rim_const_;
+  for (int i = 0; i < n_; ++i)
+    pobj += w_(i) * (Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i)).norm() * Einv_(3 * i);
+  return pobj;
+}
+
+// Dual bound d(y) = y.b - |A^T y|^2_{P^-1} / 2 at a feasible y (||y_i|| <= w_i), improved
+// cheaply: (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where
+// x leaves a force replaced by the multiplier x asks for; the best point on the segment a-b,
+// then on the segment to the best point of the previous check, then the best scaling along
+// the ray. All these stay feasible and need two products with A^T.
+double GroupLassoSolver::dual_bound(SolveState& st) const {
+  projected_multiplier(st.a);
+  force_multiplier(st.Ax, st.rho, st.b);
+  maximize_on_segment(st.a, st.b, st);
+  if (st.have_best) maximize_on_segment(st.a, st.best, st);
+  best_scaling(st.a, st.best);
+  st.have_best = true;
+  return dual_value(st.best);
+}
+
+void GroupLassoSolver::projected_multiplier(DualPoint& p) const {
+  p.y = yh_;
+  for (int i = 0; i < n_; ++i) project_on_ball(p.y.segment<3>(3 * i), wh_(i));
+  Ab_.multiply_transposed(p.y, p.aty);
+}
+
+// Where x leaves a force F_i, optimality asks for y_i = w_i F_i / ||F_i||; elsewhere the
+// projected ADMM multiplier.
+void GroupLassoSolver::force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const {
+  p.y = yh_;
+  for (int i = 0; i < n_; ++i) {
+    const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const double fn = f.norm();
+    if (fn > 1e-9 * wh_(i) / rho)
+      p.y.segment<3>(3 * i) = wh_(i) / fn * f;
+    else
+      project_on_ball(p.y.segment<3>(3 * i), wh_(i));
+  }
+  Ab_.multiply_transposed(p.y, p.aty);
+}
+
+// The dual is a concave quadratic along the segment p1-p2 and every point of it is feasible:
+// move p1 to the maximum.
+void GroupLassoSolver::maximize_on_segment(DualPoint& p1, const DualPoint& p2,
+                                           SolveState& st) const {
+  st.dy = p2.y - p1.y;
+  st.da = p2.aty - p1.aty;
+  const double dd = st.da.cwiseAbs2().cwiseQuotient(Pd_).sum();
+  if (!(dd > 0)) return;
+  const double t = std::clamp(
+      (st.dy.dot(bh_) - p1.aty.cwiseProduct(st.da).cwiseQuotient(Pd_).sum()) / dd, 0.0, 1.0);
+  p1.y += t * st.dy;
+  p1.aty += t * st.da;
+}
+
+// The best multiple t p, t capped so that every block stays in its ball.
+void GroupLassoSolver::best_scaling(const DualPoint& p, DualPoint& out) const {
+  const double lin = p.y.dot(bh_);
+  const double quad = p.aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
+  double tmax = std::numeric_limits<double>::infinity();
+  for (int i = 0; i < n_; ++i) {
+    const double nr = p.y.segment<3>(3 * i).norm();
+    if (nr > 0) tmax = std::min(tmax, wh_(i) / nr);
+  }
+  double t = quad > 0 ? lin / quad : (lin > 0 ? tmax : 0.0);
+  t = std::clamp(t, 0.0, std::isfinite(tmax) ? tmax : 1.0);
+  out.y = t * p.y;
+  out.aty = t * p.aty;
+}
+
+// Unscaled, comparable with objective().
+double GroupLassoSolver::dual_value(const DualPoint& p) const {
+  const double dual_h = p.y.dot(bh_) - 0.5 * p.aty.cwiseAbs2().cwiseQuotient(Pd_).sum();
+  return dual_h / s_ + rim_const_;
+}
+
+// The gap bounds the suboptimality of x, so "solved" is a certificate, not a heuristic.
+std::optional<SolverStatus> GroupLassoSolver::termination(const SolveState& st) const {
+  if (!std::isfinite(st.pobj) || !xh_.allFinite()) return SolverStatus::non_finite_input;
+  if (st.gap <= settings_.eps_abs + settings_.eps_rel * std::abs(st.pobj))
+    return SolverStatus::solved;
+  if (settings_.time_limit > 0 && ms_since(st.t0) > 1e3 * settings_.time_limit)
+    return SolverStatus::time_limit_reached;
+  return std::nullopt;
+}
+
+void GroupLassoSolver::write_result(const SolveState& st, int iterations, SolverResult& res) const {
+  SolverInfo& info = res.info;
   info.setup_time_ms = factor_ms_;
-  info.iterations = std::min(k, settings_.max_iter);
-  info.objective = pobj;
-  info.duality_gap = gap;
-  info.primal_residual = rp;
-  info.dual_residual = rd;
-  info.rho = rho;
+  info.iterations = iterations;
+  info.objective = st.pobj;
+  info.duality_gap = st.gap;
+  info.primal_residual = st.rp;
+  info.dual_residual = st.rd;
+  info.rho = st.rho;
   const Eigen::VectorXd x = D_.cwiseProduct(xh_);
   for (int i = 0; i < n_; ++i)
     if (is_rim_(i)) res.dU.row(i) = -U_.row(i);
   for (int j = 0; j < nf_; ++j) res.dU.row(free_(j)) = x.segment<3>(3 * j).transpose();
-  for (int i = 0; i < m; ++i) res.dual(i / 3, i % 3) = yh_(i) * E_(i) / s_;
-  if (info.status != SolverStatus::non_finite_input) {
-    Ab_.multiply(xh_, Ax);
-    force_scale_ = std::sqrt((Ax + bh_).squaredNorm() / n_);
-    V_prev_ = U_ + res.dU;
-    dual_prev_ = res.dual;
-    have_prev_ = true;
-    fresh_ = info.status == SolverStatus::solved;
-  } else {
+  for (int i = 0; i < 3 * n_; ++i) res.dual(i / 3, i % 3) = yh_(i) * E_(i) / s_;
+}
+
+// The next frame's warm start and rho; a non-finite solve leaves nothing worth keeping.
+void GroupLassoSolver::remember_solution(SolveState& st, const SolverResult& res) {
+  if (res.info.status == SolverStatus::non_finite_input) {
     have_prev_ = false;
+    return;
   }
-  info.solve_time_ms = ms_since(t0);
-  if (fresh_) last_ = res;
-  return res;
+  Ab_.multiply(xh_, st.Ax);
+  force_scale_ = std::sqrt((st.Ax + bh_).squaredNorm() / n_);
+  V_prev_ = U_ + res.dU;
+  dual_prev_ = res.dual;
+  have_prev_ = true;
+  fresh_ = res.info.status == SolverStatus::solved;
 }
 
 }  // namespace bubble

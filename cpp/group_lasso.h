@@ -32,6 +32,7 @@
 #include <Eigen/SparseCore>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "block_ldlt.h"
@@ -109,7 +110,39 @@ class GroupLassoSolver {
   void setup();  // scaling + A^T A + first factorization
   const BlockLDLT& factor(int rho_index, int* count);
   double rho_of(int idx) const;
-  void prox(const Eigen::VectorXd& v, double rho, Eigen::VectorXd& out) const;
+
+  // The steps of solve(), in the order of one ADMM iteration; SolveState (group_lasso.cpp)
+  // holds what lives for one solve: rho and its factor, scratch vectors, Anderson memory.
+  struct SolveState;
+  struct DualPoint;
+  SolverResult repeat_last(double elapsed_ms) const;
+  void start_iterates();
+  // rho: one rule (weights over the force scale), applied per frame and inside a solve.
+  double rho_target(double force_scale) const;
+  bool rho_should_move(double ratio) const;
+  void set_frame_rho(double raw_force_scale);
+  void use_rho(SolveState& st, int* factorizations);
+  void adapt_rho(SolveState& st, int* factorizations);
+  // One iteration.
+  void admm_iteration(SolveState& st);
+  void x_update(SolveState& st) const;
+  void over_relax(SolveState& st);
+  void z_update(SolveState& st) const;  // block soft-threshold
+  void dual_update(SolveState& st);
+  void anderson_step(SolveState& st);
+  // Every check_interval iterations: residuals and the duality-gap certificate.
+  void measure(SolveState& st) const;
+  double objective(const Eigen::VectorXd& Ax) const;
+  double dual_bound(SolveState& st) const;
+  void projected_multiplier(DualPoint& p) const;
+  void force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const;
+  void maximize_on_segment(DualPoint& p1, const DualPoint& p2, SolveState& st) const;
+  void best_scaling(const DualPoint& p, DualPoint& out) const;
+  double dual_value(const DualPoint& p) const;
+  std::optional<SolverStatus> termination(const SolveState& st) const;
+  // After the loop.
+  void write_result(const SolveState& st, int iterations, SolverResult& res) const;
+  void remember_solution(SolveState& st, const SolverResult& res);
 
   int n_ = 0, nf_ = 0;
   Eigen::VectorXi free_;    // free node ids

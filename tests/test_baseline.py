@@ -250,3 +250,20 @@ def test_contact_threshold_taken_from_config() -> None:
     assert est.k_const == 1e9 and not e.contact.any()
     est.reconfigure(k_const=2000.0)
     assert est.estimate_depth(_indented_depth(), P_REF).contact.any()
+
+
+def test_pipeline_refuses_a_parameter_the_frictionless_estimator_lacks() -> None:
+    from bubble_rt.estimation.deformation import Reference
+    from bubble_rt.estimation.pipeline import Pipeline
+
+    reference = Reference.capture(Frame(None, _reference_depth(), P_REF))
+    pipe = Pipeline(_mesh(), _camera(), reference, kind="frictionless")
+    assert pipe.tracker is None and pipe.params == ("k_const", "k_linear")
+    config = pipe.config
+    with pytest.raises(ValueError, match="no parameter k_f"):
+        pipe.reconfigure({"k_f": 0.5, "k_const": 1500.0})
+    assert pipe.config == config and pipe.estimator.k_const == 2000.0
+    pipe.reconfigure({"k_const": 1500.0})
+    assert pipe.estimator.k_const == 1500.0 and pipe.config.k_const == 1500.0
+    e = pipe.process(Frame(None, _indented_depth(), P_REF))
+    assert e.contact.any()

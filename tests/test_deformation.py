@@ -227,7 +227,9 @@ class _Truth:
 def test_oracle_uses_ground_truth_without_images():
     mesh = Mesh.preset("coarse")
     ref = Reference.capture(Frame(None, None, 1000.0))
-    tr = DeformationTracker(mesh, Camera.d405(), ref, FlowSettings(method="oracle"))
+    from bubble_rt.sim.oracle import OracleTracker
+
+    tr = OracleTracker(mesh, Camera.d405(), ref, FlowSettings(method="oracle"))
     d = tr.track(Frame(None, None, 1010.0, truth=_Truth()))
     expected = _Truth().displace(mesh.vertices) - mesh.vertices
     np.testing.assert_allclose(d.U, expected)
@@ -265,7 +267,7 @@ def test_reference_capture_averages_valid_depth_only():
     assert ref.depth[1, 1] == pytest.approx(0.10)
     assert ref.depth[2, 2] == pytest.approx(0.11)
     assert (ref.rgb == 15).all()
-    tared = ref.tare(Frame(rgb1, d1, 300.0))
+    tared = Reference.capture(Frame(rgb1, d1, 300.0))
     assert tared.pressure_pa == 300.0 and tared.n_frames == 1
 
 
@@ -327,6 +329,28 @@ def test_identical_frames_give_zero_force_and_no_contact(scene):
     assert np.linalg.norm(e.net_force) < 1e-3
     assert e.valid_node_fraction == 1.0
     assert {"flow", "lift", "solve"} <= set(e.timings_ms)
+
+
+def test_pipeline_two_stages_match_process_and_the_attached_estimator(scene):
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.pipeline import Pipeline
+
+    cam, depth, img, ref, mesh = scene
+    F = np.zeros((cam.height, cam.width, 2), np.float32)
+    F[..., 0] = 1.0
+    frame = Frame(warp(img, F), depth, 100050.0)
+    pipe = Pipeline(mesh, cam, ref)
+    d = pipe.deform(frame)
+    e = pipe.solve(frame, d)
+    est = ForceEstimator(mesh)
+    est.attach(DeformationTracker(mesh, cam, ref))
+    e_ref = est.process(frame)
+    np.testing.assert_allclose(e.node_forces, e_ref.node_forces)
+    assert e.valid_node_fraction == e_ref.valid_node_fraction == d.valid_fraction
+    assert {"flow", "lift", "solve", "post"} <= set(e.timings_ms)
+    np.testing.assert_allclose(Pipeline(mesh, cam, ref).process(frame).net_force, e.net_force)
+    pipe.set_reference(Reference.capture(frame))
+    assert np.abs(pipe.deform(frame).U).max() < 2e-6
 
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")

@@ -8,8 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from bubble_rt.estimation.estimator import Estimate, EstimatorConfig, ForceEstimator, make_estimator
+from bubble_rt.estimation.estimator import Estimate, EstimatorConfig, ForceEstimator
 from bubble_rt.estimation.membrane import Material
+from bubble_rt.estimation.registry import make_estimator
 from bubble_rt.estimation.solver import SolverSettings
 from bubble_rt.mesh import Mesh
 

@@ -280,3 +280,21 @@ def test_recording_eval_on_untouched_real_frames():
     assert st["force_mag_err_n"] < 1.5
     assert st["false_contact_rate"] is not None and st["false_contact_rate"] <= 0.5
     assert "| fem |" in recording_table(res)
+
+
+def test_eval_seed_changes_the_simulated_trajectories():
+    """`eval --seed N` draws other trajectories: the scene a seed gives differs from the default."""
+    import argparse
+
+    from bubble_rt.commands import eval as eval_cmd
+    from bubble_rt.eval import EVAL_SEED_BASE, make_tasks, trajectory_scene
+
+    p = argparse.ArgumentParser()
+    eval_cmd.add_arguments(p)
+    assert p.parse_args(["--seed", "7"]).seed == 7
+    assert p.parse_args([]).seed is None
+    assert {t.seed for t in make_tasks(["round"], 2, 4, seed_base=7)} == {7}
+    a = trajectory_scene("round", 0, 6, EVAL_SEED_BASE)
+    b = trajectory_scene("round", 0, 6, 7)
+    assert a.name == b.name
+    assert a != b

@@ -336,3 +336,16 @@ def test_reconfigure_weights_matches_fresh_problem() -> None:
     assert obj != pytest.approx(_problem().solve(U, 10.0, tight=True)[1], rel=1e-3)
     with pytest.raises(ValueError, match="k_f"):
         pb.reconfigure(k_f=-1.0)
+
+
+def test_reference_loads_neither_the_cpp_core_nor_the_estimation_package():
+    # import-linter cannot see the compiled _core, so this contract is checked by importing.
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, bubble_rt.reference, bubble_rt.reference.pipeline\n"
+        "bad = [m for m in sys.modules if m.startswith(('bubble_rt._core', 'bubble_rt.estimation'))]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import zmq
 from bubble_rt.camera import Camera
-from bubble_rt.config import ESTIMATOR_RANGES, LIVE_PARAMS, ConfigError, DaemonConfig
+from bubble_rt.config import ESTIMATOR_RANGES, ConfigError, DaemonConfig
 from bubble_rt.daemon.service import Daemon, DaemonError
 from bubble_rt.daemon.sources import (
     IterableCamera,
@@ -43,7 +43,7 @@ from bubble_rt.io.mcap import (
     write_recording,
 )
 from bubble_rt.io.mcap_scan import McapFileError, ReadReport
-from bubble_rt.io.protocol import pb
+from bubble_rt.io.protocol import PARAM_NAMES, pb
 from bubble_rt.io.recordings import open_recording
 from daemon_fakes import (
     P0,
@@ -549,12 +549,12 @@ def test_set_params_out_of_range_is_refused_and_not_applied(param, value):
 
 
 def test_parameter_ranges_are_the_configurations():
-    for name in LIVE_PARAMS:
+    for name in PARAM_NAMES:
         r = ESTIMATOR_RANGES[name]
         for bad in (r.lo - abs(r.lo) - 1, r.hi * 10):
             with pytest.raises(ConfigError, match=f"estimator.{name}: must be in"):
                 DaemonConfig.from_dict({"estimator": {name: bad}})
-            from bubble_rt.daemon.service import validate_params
+            from bubble_rt.daemon.control import validate_params
 
             assert validate_params({name: bad}) == (f"set_params: {name} {r.problem(bad)}")
         DaemonConfig.from_dict({"estimator": {name: r.lo}})
@@ -572,7 +572,7 @@ def test_estimator_is_finite_at_every_range_limit():
     U = np.zeros_like(V)
     U[:, 2] = -8e-3 * np.exp(-((np.linalg.norm(V[:, :2] - [0.01, 0.005], axis=1) / 0.015) ** 2))
     U[mesh.boundary] = 0.0
-    for name in LIVE_PARAMS:
+    for name in PARAM_NAMES:
         for v in (ESTIMATOR_RANGES[name].lo, ESTIMATOR_RANGES[name].hi):
             est = ForceEstimator(mesh)
             est.reconfigure(

@@ -436,7 +436,7 @@ class FakeSimulator:
 
     renders = 0
 
-    def __init__(self, scene):
+    def __init__(self, scene, progress=None):
         self.scene = types.SimpleNamespace(frames=4, rates=types.SimpleNamespace(camera_hz=30.0))
         self.camera = Camera.d405()
 
@@ -470,7 +470,7 @@ def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
 def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
     from bubble_rt.daemon.sources import SimCamera
 
-    def boom(scene):
+    def boom(scene, progress=None):
         raise ValueError("no scene named 'nope'")
 
     monkeypatch.setitem(sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=boom))

@@ -1,5 +1,4 @@
 // Private bindings for the RGBD deformation stage (use bubble_rt.deformation instead).
-// bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
 #include <pybind11/eigen.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
@@ -11,6 +10,7 @@
 #include "depth_fill.h"
 #include "errors.h"
 #include "lifting.h"
+#include "numpy_views.h"
 #include "optical_flow.h"
 
 namespace py = pybind11;
@@ -21,7 +21,7 @@ namespace {
 
 using U8Image = py::array_t<std::uint8_t, py::array::c_style>;
 using F32Image = py::array_t<float, py::array::c_style | py::array::forcecast>;
-using F64Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using bubble::bindings::ArrDCast;
 using FlagVector = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>;
 
 // A cv::Mat header over a numpy RGB image (no copy).
@@ -37,7 +37,7 @@ cv::Mat f32_view(const F32Image& img, const char* what) {
                  const_cast<float*>(img.data()));
 }
 
-Eigen::Map<const RowMatrixX2d> uv_view(const F64Array& uv) {
+Eigen::Map<const RowMatrixX2d> uv_view(const ArrDCast& uv) {
   bubble::require(uv.ndim() == 2 && uv.shape(1) == 2, "uv must be N x 2");
   return Eigen::Map<const RowMatrixX2d>(uv.data(), uv.shape(0), 2);
 }
@@ -93,7 +93,7 @@ void bind_deformation(py::module_& m) {
           py::arg("rgb"))
       .def(
           "sample",
-          [](const bubble::OpticalFlow& self, const F64Array& uv, double fb_threshold) {
+          [](const bubble::OpticalFlow& self, const ArrDCast& uv, double fb_threshold) {
             auto pts = uv_view(uv);
             RowMatrixX2d flow(pts.rows(), 2);
             Eigen::VectorXd fb(pts.rows());
@@ -133,7 +133,7 @@ void bind_deformation(py::module_& m) {
 
   m.def(
       "_lift_pixels",
-      [](const F32Image& filled, const U8Image& level, const F64Array& uv, double fx, double fy,
+      [](const F32Image& filled, const U8Image& level, const ArrDCast& uv, double fx, double fy,
          double cx, double cy, int max_fill_level) {
         cv::Mat d = f32_view(filled, "filled depth");
         bubble::require(level.ndim() == 2, "level must be a 2-D H x W uint8 array");

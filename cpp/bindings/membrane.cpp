@@ -5,34 +5,18 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-#include <string>
-
 #include "errors.h"
+#include "numpy_views.h"
 
 namespace py = pybind11;
-using bubble::RowMatrixX3d;
 using bubble::RowMatrixX3i;
-
-namespace {
-// noconvert() on these arguments means pybind11 never copies: the facade passes C-contiguous
-// float64 / int32 arrays, anything else is a TypeError.
-using ArrD = py::array_t<double, py::array::c_style>;
-using ArrI = py::array_t<int, py::array::c_style>;
-using ArrB = py::array_t<bool, py::array::c_style>;
-
-Eigen::Map<const RowMatrixX3d> map_n3(const ArrD& a, const char* name) {
-  bubble::require(a.ndim() == 2 && a.shape(1) == 3, std::string(name) + " must be N x 3");
-  return {a.data(), a.shape(0), 3};
-}
-Eigen::Map<const Eigen::VectorXd> map_n(const ArrD& a, const char* name) {
-  bubble::require(a.ndim() == 1, std::string(name) + " must be 1-D");
-  return {a.data(), a.shape(0)};
-}
-}  // namespace
+using bubble::bindings::ArrB;
+using bubble::bindings::ArrD;
+using bubble::bindings::ArrI;
+using bubble::bindings::map_n;
+using bubble::bindings::map_n3;
 
 void bind_membrane(py::module_& m) {
-  py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
-
   py::class_<bubble::MembraneModel>(m, "_Membrane")
       .def(py::init([](const ArrD& v, const ArrI& t, double E, double nu, double th) {
              auto V = map_n3(v, "vertices");

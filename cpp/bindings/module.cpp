@@ -1,6 +1,8 @@
 // The one pybind11 module. Each concept binds itself in cpp/bindings/<concept>.cpp.
 #include <pybind11/pybind11.h>
 
+#include "errors.h"
+
 namespace py = pybind11;
 
 void bind_membrane(py::module_& m);
@@ -11,6 +13,9 @@ void bind_render(py::module_& m);
 
 PYBIND11_MODULE(_core, m) {
   m.doc() = "bubble_rt C++ core (private: use the bubble_rt Python API)";
+  // Registered once, before any binding can throw it: every binding's bad input becomes
+  // _core.InputError, a ValueError.
+  py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
   bind_membrane(m);
   bind_solver(m);
   bind_deformation(m);

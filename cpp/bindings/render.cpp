@@ -4,17 +4,18 @@
 #include <pybind11/pybind11.h>
 
 #include "errors.h"
+#include "numpy_views.h"
 #include "rasterizer.h"
 
 namespace py = pybind11;
 
 namespace {
 
-using DArr = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using bubble::bindings::ArrDCast;
 using IArr = py::array_t<int32_t, py::array::c_style | py::array::forcecast>;
 using UArr = py::array_t<uint8_t, py::array::c_style | py::array::forcecast>;
 
-py::tuple render(const DArr& vertices, const IArr& triangles, const DArr& texcoords,
+py::tuple render(const ArrDCast& vertices, const IArr& triangles, const ArrDCast& texcoords,
                  const UArr& texture, double fx, double fy, double cx, double cy, int width,
                  int height, bool rgb, bool shading, double ambient) {
   if (vertices.ndim() != 2 || vertices.shape(1) != 3)
@@ -59,7 +60,6 @@ py::tuple render(const DArr& vertices, const IArr& triangles, const DArr& texcoo
 }  // namespace
 
 void bind_render(py::module_& m) {
-  // bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
   m.def("render_mesh", &render, py::arg("vertices"), py::arg("triangles"), py::arg("texcoords"),
         py::arg("texture"), py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"),
         py::arg("width"), py::arg("height"), py::arg("rgb") = true, py::arg("shading") = true,

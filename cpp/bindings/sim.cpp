@@ -17,7 +17,6 @@ using bubble::SimRowMatrixX3i;
 using bubble::SimRowMatrixX9d;
 
 void bind_sim(py::module_& m) {
-  // bubble::InputError derives from std::invalid_argument, which pybind11 maps to ValueError.
   py::class_<SimMembrane>(m, "_SimMembrane")
       .def(py::init<const SimRowMatrixX3d&, const SimRowMatrixX3i&, const Eigen::VectorXi&,
                     double>(),

@@ -3,24 +3,17 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-#include <string>
+#include <memory>
 
 #include "errors.h"
 #include "group_lasso.h"
 #include "membrane.h"
+#include "numpy_views.h"
 
 namespace py = pybind11;
-using bubble::RowMatrixX3d;
-
-namespace {
-using ArrD = py::array_t<double, py::array::c_style>;
-using ArrI = py::array_t<int, py::array::c_style>;
-
-Eigen::Map<const RowMatrixX3d> map_n3(const ArrD& a, const char* name) {
-  bubble::require(a.ndim() == 2 && a.shape(1) == 3, std::string(name) + " must be N x 3");
-  return {a.data(), a.shape(0), 3};
-}
-}  // namespace
+using bubble::bindings::ArrD;
+using bubble::bindings::ArrI;
+using bubble::bindings::map_n3;
 
 void bind_solver(py::module_& m) {
   using S = bubble::SolverSettings;

@@ -142,7 +142,7 @@ class Camera:
     def pixel_grid(self) -> NDArray[np.float64]:
         """(H*W) x 2 pixel centres in row-major order."""
         v, u = np.mgrid[0 : self.height, 0 : self.width]
-        return np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)  # type: ignore[no-any-return]
+        return np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
 
     def depth_to_points(self, depth: NDArray) -> NDArray[np.float64]:
         """Organised mesh-frame point cloud (H*W x 3) of a depth image; NaN where depth <= 0."""

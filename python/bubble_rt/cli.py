@@ -31,12 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"bubble-rt {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        try:
-            mod = importlib.import_module(f"bubble_rt.commands.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"bubble_rt.commands.{name}":
-                raise
-            continue
+        mod = importlib.import_module(f"bubble_rt.commands.{name}")
         p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)

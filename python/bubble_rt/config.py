@@ -15,6 +15,9 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
+from bubble_rt.estimation.registry import estimator_kinds
+
 
 class ConfigError(ValueError):
     """Invalid configuration; ``key`` is the dotted name of the offending key."""
@@ -75,9 +78,6 @@ ESTIMATOR_RANGES: dict[str, ParamRange] = {
     "k_const": ParamRange(0.0, 1e6, "Pa"),
     "k_linear": ParamRange(0.0, 1e3),
 }
-
-#: The estimator parameters ``set_params`` may change while running.
-LIVE_PARAMS = ("k_f", "k_u", "youngs_modulus", "k_const", "k_linear")
 
 
 def param_problem(name: str, value: Any) -> str | None:
@@ -201,7 +201,9 @@ class NetworkConfig:
 
 @dataclass(frozen=True)
 class EstimatorSection:
-    """Force estimator (method.md): kind "fem" (group-lasso FEM) or "frictionless" (baseline)."""
+    """Force estimator (method.md): a registered kind (``bubble_rt.estimation.registry``):
+    "fem" (group-lasso FEM) or "frictionless" (baseline). The parameter keys map onto
+    EstimatorConfig through ``bubble_rt.estimation.estimator.CONFIG_KEYS``."""
 
     kind: str = "fem"
     #: Mesh preset ("coarse" 227, "medium" 390, "fine" 749 nodes) or a mesh file path.
@@ -217,13 +219,16 @@ class EstimatorSection:
     k_linear: float = 2.0
 
     def __post_init__(self) -> None:
-        _check(self.kind in ("fem", "frictionless"), "kind", "must be 'fem' or 'frictionless'")
+        from bubble_rt.mesh import PRESETS
+
+        kinds = estimator_kinds()
+        _check(self.kind in kinds, "kind", "must be " + " or ".join(repr(k) for k in kinds))
         _check(bool(self.mesh), "mesh", "must name a preset or a mesh file")
-        if self.mesh not in ("coarse", "medium", "fine"):
+        if self.mesh not in PRESETS:
             _check(
                 Path(self.mesh).exists(),
                 "mesh",
-                f"{self.mesh!r} is neither a preset (coarse, medium, fine) nor an existing file",
+                f"{self.mesh!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file",
             )
         for name in ESTIMATOR_RANGES:
             err = param_problem(name, getattr(self, name))
@@ -247,20 +252,12 @@ class FlowSection:
     """Optical flow settings passed to the deformation tracker (FlowSettings; its other
     settings keep the deformation module's defaults)."""
 
-    method: str = "dis_ultrafast"
+    method: str = DEFAULT_FLOW_METHOD
     scale: float = 1.0
     forward_backward: bool = False
 
     def __post_init__(self) -> None:
-        methods = (
-            "dis_fast",
-            "dis_medium",
-            "dis_ultrafast",
-            "farneback",
-            "farneback_heavy",
-            "oracle",
-        )
-        _check(self.method in methods, "method", f"must be one of {', '.join(methods)}")
+        _check(self.method in FLOW_METHODS, "method", f"must be one of {', '.join(FLOW_METHODS)}")
         _check(0 < self.scale <= 1.0, "scale", "must be in (0, 1]")
 
 

@@ -16,10 +16,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, cKDTree
 
 PRESET_NODES: dict[str, int] = {"coarse": 227, "medium": 390, "fine": 749}
+#: Mesh preset names, coarsest first (the one list config, daemon, eval and commands use).
+PRESETS: tuple[str, ...] = tuple(PRESET_NODES)
 
 #: Triangles whose smallest angle is below this (degrees) are rejected as slivers.
 MIN_ANGLE_DEG = 5.0
@@ -76,7 +79,7 @@ class Mesh:
 
     vertices: NDArray[np.float64]
     triangles: NDArray[np.int32]
-    boundary: NDArray[np.int32] = field(default=None)  # type: ignore[assignment,arg-type]
+    boundary: NDArray[np.int32] = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=np.float64)
@@ -109,6 +112,17 @@ class Mesh:
         if n_nodes < 10:
             raise ValueError(f"n_nodes must be at least 10, got {n_nodes}")
         return _generate(int(n_nodes), geometry or MeshGeometry())
+
+    @classmethod
+    def from_spec(cls, spec: str | int, geometry: MeshGeometry | None = None) -> Mesh:
+        """A mesh named the way configs and command lines name it: a preset ("coarse",
+        "medium", "fine"), a node count ("500" or 500: ``generate``) or a mesh file path."""
+        name = str(spec)
+        if name in PRESET_NODES:
+            return cls.preset(name, geometry)
+        if name.isdigit():
+            return cls.generate(int(name), geometry)
+        return cls.load(name)
 
     @classmethod
     def load(cls, path: str | Path, min_angle_deg: float = MIN_ANGLE_DEG) -> Mesh:
@@ -208,6 +222,18 @@ class Mesh:
         mask[self.boundary] = False
         return mask
 
+    def lumped_areas(self) -> NDArray[np.float64]:
+        """(N,) lumped node areas (m^2): see :func:`lumped_areas`."""
+        return lumped_areas(self.vertices, self.triangles)
+
+    def vertex_normals(self) -> NDArray[np.float64]:
+        """N x 3 area-weighted outward unit normals: see :func:`vertex_normals`."""
+        return vertex_normals(self.vertices, self.triangles)
+
+    def adjacency(self) -> sp.csr_matrix:
+        """N x N symmetric 0/1 node adjacency over the mesh edges: see :func:`edge_adjacency`."""
+        return edge_adjacency(self.triangles, self.n_nodes)
+
     def min_angle_deg(self) -> float:
         """Smallest triangle angle in the mesh (degrees): the quality figure reported."""
         return float(triangle_angles_deg(self.vertices, self.triangles).min())
@@ -237,6 +263,44 @@ class Mesh:
 
 
 # ---------------------------------------------------------------------- helpers
+def lumped_areas(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
+    """(N,) lumped node areas, m^2: one third of every incident triangle's area.
+
+    The Python copy of what the C++ membrane model computes (``MembraneModel.areas``), for the
+    code that must not build a model (daemon patches, evaluation metrics).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    a = np.zeros(len(v))
+    for k in range(3):
+        np.add.at(a, t[:, k], area / 3.0)
+    return a
+
+
+def vertex_normals(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
+    """Area-weighted outward unit normals (N x 3), as the C++ model's ``normals``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, t[:, k], cross)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(norm > 0, norm, 1.0)
+
+
+def edge_adjacency(triangles: NDArray[np.integer], n_nodes: int) -> sp.csr_matrix:
+    """N x N symmetric node adjacency (float 0/1, no diagonal) over the triangles' edges."""
+    t = np.asarray(triangles)
+    i = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
+    j = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_nodes, n_nodes)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
 def triangle_angles_deg(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
     """T x 3 interior angles (degrees) of each triangle, at its three corners."""
     p = vertices[triangles]
@@ -345,13 +409,7 @@ def _generate(n_nodes: int, g: MeshGeometry) -> Mesh:
 def _smooth_on_dome(v: NDArray, tri: NDArray, n_fixed: int, g: MeshGeometry) -> NDArray:
     """Tangential Laplacian smoothing in 3D, re-projected onto the dome; evens out edges that
     the footprint triangulation stretched where the dome is steep."""
-    n = len(v)
-    i = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2], tri[:, 1], tri[:, 2], tri[:, 0]])
-    j = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0], tri[:, 0], tri[:, 1], tri[:, 2]])
-    from scipy.sparse import coo_matrix
-
-    A = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    A.data[:] = 1.0
+    A = edge_adjacency(tri, len(v))
     deg = np.asarray(A.sum(axis=1)).ravel()
     a, b = g.semi_axis_x, g.semi_axis_y
     for _ in range(30):

@@ -9,12 +9,18 @@ file is used as given: it must already be in the recording camera's mesh frame).
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
 timings_ms, wrench (6 or null), solver_status}]}.
+
+RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
+writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
+per frame (see :mod:`bubble_rt.io.rosbag`). ``--json`` or ``--bag`` (or both) is required.
 """
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
+
+from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
 
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
@@ -42,19 +48,28 @@ def parse_frames(spec: str, n: int) -> list[int]:
     return out
 
 
-#: Image-based methods of bubble_rt.estimation.deformation.FLOW_METHODS (not imported: --help stays fast).
-FLOW_CHOICES = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy")
+#: The image-based flow methods (recordings carry no ground truth for "oracle").
+FLOW_CHOICES = IMAGE_FLOW_METHODS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", help="recording folder (Punyo .npy layout or PNG folder)")
+    parser.add_argument("recording", help="recording (Punyo .npy layout, PNG folder or ROS 2 bag)")
     parser.add_argument(
         "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
     )
     parser.add_argument(
         "--mesh", default="medium", help="preset to fit (coarse|medium|fine) or a mesh file"
     )
-    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--json", default=None, help="output JSON file")
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    parser.add_argument("--bag", default=None, help="also write a rosbag2 (MCAP) folder here")
+    parser.add_argument(
+        "--topics", default=None, help="bag topics: color=..,depth=..,info=..,pressure=.. or /ns"
+    )
+    parser.add_argument(
+        "--depth-unit", type=float, default=None, help="bag 16UC1 depth metres per count (0.001)"
+    )
+    # ---- end ROS 2 bags ----
     parser.add_argument(
         "--flow",
         default=None,
@@ -76,13 +91,19 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.estimation.estimator import ForceEstimator
-    from bubble_rt.estimation.fitting import fit_mesh
+    from bubble_rt.estimation.deformation import FlowSettings
+    from bubble_rt.estimation.pipeline import Pipeline
     from bubble_rt.io.recordings import open_recording
-    from bubble_rt.mesh import PRESET_NODES, Mesh
+    from bubble_rt.mesh import PRESET_NODES
 
-    rec = open_recording(args.recording)
+    if not args.json and not args.bag:
+        print("bubble-rt estimate: give --json OUT and/or --bag OUT", file=sys.stderr)
+        return 2
+    try:
+        rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
+    except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
+        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
+        return 2
     n = len(rec)
     try:
         ref_idx = parse_frames(args.reference_frames, n)
@@ -90,31 +111,45 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
-    reference = Reference.capture([rec[i] for i in ref_idx])
-    if args.mesh in PRESET_NODES:
-        mesh = fit_mesh(Mesh.preset(args.mesh), reference, rec.camera)
-        mesh_info: dict[str, Any] = {"preset": args.mesh, "fitted": True}
-    else:
-        mesh = Mesh.load(args.mesh)
-        mesh_info = {"file": str(args.mesh), "fitted": False}
-    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
-    if args.save_mesh:
-        mesh.save(args.save_mesh)
     settings = FlowSettings()
     if args.flow:
         settings = replace(settings, method=args.flow)
     if args.flow_scale is not None:
         settings = replace(settings, scale=args.flow_scale)
-    tracker = DeformationTracker(mesh, rec.camera, reference, settings)
-    estimator = ForceEstimator(mesh)
-    estimator.attach(tracker)
+    preset = args.mesh in PRESET_NODES
+    estimator = Pipeline.capture(
+        [rec[i] for i in ref_idx], rec.camera, mesh=args.mesh, fit=preset, flow=settings
+    )
+    mesh, reference = estimator.mesh, estimator.reference
+    mesh_info: dict[str, Any] = (
+        {"preset": args.mesh, "fitted": True}
+        if preset
+        else {"file": str(args.mesh), "fitted": False}
+    )
+    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
+    if args.save_mesh:
+        mesh.save(args.save_mesh)
     R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
 
+    bag = None
+    if args.bag:
+        from bubble_rt.io.rosbag import BagWriter
+
+        bag = BagWriter(args.bag)
     frames_out = []
     for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
         frame = rec[i]
         e = estimator.process(frame)
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        if bag is not None:
+            bag.write(
+                frame.t,
+                f_mesh,
+                np.asarray(mesh.vertices) + np.nan_to_num(np.asarray(e.displacements)),
+                e.node_forces,
+                e.normal_pressure,
+                e.contact,
+            )
         frames_out.append(
             {
                 "index": int(frame.index),
@@ -147,5 +182,8 @@ def run(args: argparse.Namespace) -> int:
         "reference_pressure_pa": reference.pressure_pa,
         "frames": frames_out,
     }
-    Path(args.json).write_text(json.dumps(out, indent=1))
+    if bag is not None:
+        bag.close()
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
     return 0

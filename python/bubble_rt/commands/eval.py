@@ -16,6 +16,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trajectories", type=int, default=None, help="per indenter (default 4; quick 2)"
     )
     p.add_argument("--frames", type=int, default=None, help="per trajectory (default 20; quick 8)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="master seed of the simulated trajectories (default 100000; calibration draws from "
+        "1000 up, so any other seed gives trajectories nobody tuned on)",
+    )
     p.add_argument("--geometries", default="round,point,line,square,split")
     p.add_argument("--estimators", default="fem,frictionless")
     p.add_argument("--mesh", default="medium", help="estimator mesh: coarse|medium|fine|<nodes>")
@@ -31,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--force-threshold", type=float, default=1.0, help="recording contact threshold (N)"
     )
     p.add_argument("--no-progress", action="store_true")
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    p.add_argument("--topics", default=None, help="bag topics (see `estimate --help`)")
+    p.add_argument("--depth-unit", type=float, default=None, help="bag 16UC1 metres per count")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
             mesh=args.mesh,
             n_reference=args.reference_frames,
             force_threshold=args.force_threshold,
+            bag_options={"topics": args.topics, "depth_unit": args.depth_unit},
         )
         print(ev.recording_table(res))
         if args.json:
@@ -71,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         estimators=estimators,
         flow_method=args.flow,
         config=tuple(sorted(overrides.items())),
+        seed_base=ev.EVAL_SEED_BASE if args.seed is None else args.seed,
     )
     if args.figures:
         # per-node fields only for each indenter's first light and heavy trajectories
@@ -99,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             "flow": args.flow,
             "config": overrides,
             "geometries": geoms,
+            "seed": tasks[0].seed if tasks else None,
         }
         payload["frames"] = [ev.records_to_json(r.records) for r in results]
         ev.write_json(args.json, payload)

@@ -23,8 +23,8 @@ def default_output(path: str | Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bubble_rt.io.mcap import RecordingPathError
-    from bubble_rt.io.mcap_scan import McapFileError, recover
+    from bubble_rt.io.mcap import RecordingPathError, recover
+    from bubble_rt.io.mcap_scan import McapFileError
 
     out = Path(args.output) if args.output else default_output(args.input)
     try:

@@ -35,9 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, default=0.0, help="stop after S seconds (0: run until signal)"
     )
+    # ---- Foxglove and ROS 2 bags (bubble_rt.io.foxglove, bubble_rt.io.rosbag) ----
+    parser.add_argument(
+        "--foxglove",
+        nargs="?",
+        const="ws://127.0.0.1:8765",
+        default=None,
+        metavar="ADDR",
+        help="serve a Foxglove WebSocket (default ws://127.0.0.1:8765); also into --record",
+    )
+    parser.add_argument("--topics", help="replay of a ROS 2 bag: its topics (see estimate)")
+    parser.add_argument("--depth-unit", type=float, help="replay of a ROS 2 bag: 16UC1 m/count")
+    # ---- end Foxglove and ROS 2 bags ----
 
 
-def build_config(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def build_config(args: argparse.Namespace):
     from bubble_rt.config import DaemonConfig
 
     cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()
@@ -72,13 +84,42 @@ def run(args: argparse.Namespace) -> int:
         return 2
     stop = threading.Event()
     install_signal_handlers(stop)
+    view = None
     try:
-        daemon = Daemon(cfg).start()
-    except (DaemonError, SourceError) as exc:
+        daemon = Daemon(cfg, camera=bag_replay_source(cfg, args))
+        if args.foxglove:
+            from bubble_rt.daemon.foxglove_view import FoxgloveView
+
+            view = FoxgloveView(args.foxglove)
+            daemon.viewers.append(view)
+            print(f"bubble-rt serve: Foxglove on {view.address}", file=sys.stderr, flush=True)
+        daemon.start()
+    except (DaemonError, SourceError, RuntimeError, ValueError) as exc:
+        if view is not None:
+            view.close()
         print(f"bubble-rt serve: {exc}", file=sys.stderr)
         return 1
     serve_until(daemon, stop, args.duration, args.echo)
     return 0
+
+
+def bag_replay_source(cfg: Any, args: argparse.Namespace) -> Any:
+    """A replay source with the bag options (--topics/--depth-unit), or None (the default)."""
+    if not (getattr(args, "topics", None) or getattr(args, "depth_unit", None)):
+        return None
+    from bubble_rt.config import split_source
+    from bubble_rt.daemon.sources import ReplayCamera
+
+    kind, arg = split_source(cfg.camera.source)
+    if kind != "replay":
+        return None
+    return ReplayCamera(
+        arg,
+        realtime=cfg.camera.pace == "realtime",
+        loop=cfg.camera.loop,
+        topics=args.topics,
+        depth_unit=args.depth_unit,
+    )
 
 
 def install_signal_handlers(stop: threading.Event) -> None:

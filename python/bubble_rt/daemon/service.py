@@ -9,7 +9,8 @@ Threads (all daemon threads, all loops bounded by timeouts so shutdown takes < 2
   the membrane deformation (optical flow + lifting, C++ without the GIL);
 * stage 2: solves for the forces (C++ ADMM without the GIL), derives contact patches and
   publishes the ForceFrame, so the flow of frame k+1 overlaps the solve of frame k;
-* control: answers ControlRequests on a ROUTER socket and publishes Status periodically.
+* control: answers ControlRequests on a ROUTER socket (``bubble_rt.daemon.control``) and
+  publishes Status periodically (``bubble_rt.daemon.health``).
 
 Frames that arrive while a stage is busy replace older unprocessed ones (counted as drops):
 the daemon always works on the newest data and its latency never builds up.
@@ -17,22 +18,26 @@ the daemon always works on the newest data and its latency never builds up.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import zmq
-from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
-from bubble_rt.config import LIVE_PARAMS, DaemonConfig, param_problem
-from bubble_rt.daemon import faults
+from bubble_rt.config import DaemonConfig, EstimatorSection
+from bubble_rt.daemon import control, faults, health
+from bubble_rt.daemon.processor import (
+    EstimatorProcessor,
+    PatchFinder,
+    Processor,
+    ProcessorFactory,
+)
 from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
@@ -44,179 +49,11 @@ from bubble_rt.daemon.sources import (
 )
 from bubble_rt.frames import Frame
 from bubble_rt.io import protocol
-from bubble_rt.io.protocol import pb
-from bubble_rt.mesh import Mesh
+from bubble_rt.io.mcap import TOPIC_MESH
 
 #: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
 #: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
 CONTROL_MAX_TRANSPORT_BYTES = protocol.MAX_MESSAGE_BYTES
-
-
-class Processor(Protocol):
-    """What the daemon needs from the estimation side (a real estimator or a test fake)."""
-
-    mesh: Mesh
-
-    def stage1(self, frame: Frame) -> Any:
-        """Deformation of one frame (may run concurrently with ``stage2`` of an older one)."""
-
-    def stage2(self, frame: Frame, data: Any) -> Any:
-        """An ``Estimate`` (node_forces, normal_pressure, contact, net_force, info, ...)."""
-
-    def set_reference(self, frames: list[Frame]) -> None:
-        """Re-capture the reference from untouched frames (tare)."""
-
-    def reconfigure(self, params: dict[str, float]) -> None:
-        """Apply Params (k_f, k_u, youngs_modulus, k_const, k_linear) between frames."""
-
-
-ProcessorFactory = Callable[[DaemonConfig, Camera, list[Frame]], Processor]
-
-
-# ------------------------------------------------------------------------ real estimator
-class EstimatorProcessor:
-    """The real pipeline: Reference -> fit_mesh -> DeformationTracker + make_estimator."""
-
-    def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
-        from bubble_rt.estimation.deformation import Reference
-        from bubble_rt.estimation.estimator import EstimatorConfig
-        from bubble_rt.estimation.membrane import Material
-
-        ec = config.estimator
-        self.config = config
-        self.camera = camera
-        self.kind = ec.kind
-        reference = Reference.capture(frames)
-        template = (
-            Mesh.preset(ec.mesh) if ec.mesh in ("coarse", "medium", "fine") else Mesh.load(ec.mesh)
-        )
-        if ec.fit_mesh:
-            from bubble_rt.estimation.fitting import fit_mesh
-
-            self.mesh = fit_mesh(template, reference, camera)
-        else:
-            self.mesh = template
-        self.est_config = EstimatorConfig(
-            material=Material(E=ec.youngs_modulus, nu=ec.poisson, thickness=ec.thickness),
-            k_f=ec.k_f,
-            k_u=ec.k_u,
-            k_const=ec.k_const,
-            k_linear=ec.k_linear,
-            solver=self._solver_settings(),
-        )
-        self._build(reference)
-
-    def _solver_settings(self) -> Any:
-        from bubble_rt.estimation.solver import SolverSettings
-
-        sc = self.config.solver
-        wanted: dict[str, Any] = {"time_limit": sc.time_limit_ms / 1e3}
-        names = {f.name for f in dataclasses.fields(SolverSettings)}
-        return SolverSettings(**{k: v for k, v in wanted.items() if k in names})
-
-    def _flow_settings(self) -> Any:
-        from bubble_rt.estimation.deformation import FlowSettings
-
-        names = {f.name for f in dataclasses.fields(FlowSettings)}
-        wanted = dataclasses.asdict(self.config.flow)
-        return FlowSettings(**{k: v for k, v in wanted.items() if k in names})
-
-    def _build(self, reference: Any, estimator: bool = True) -> None:
-        from bubble_rt.estimation.estimator import make_estimator
-
-        self.reference = reference
-        if estimator:
-            self.estimator = make_estimator(
-                self.kind, self.mesh, self.est_config, camera=self.camera, reference=reference
-            )
-        if self.kind == "fem":
-            from bubble_rt.estimation.deformation import DeformationTracker
-
-            self.tracker = DeformationTracker(
-                self.mesh, self.camera, reference, self._flow_settings()
-            )
-
-    def stage1(self, frame: Frame) -> Any:
-        return self.tracker.track(frame) if self.kind == "fem" else None
-
-    def stage2(self, frame: Frame, data: Any) -> Any:
-        if self.kind != "fem":
-            return self.estimator.process(frame)
-        est = self.estimator.estimate(data.U, data.dp)
-        timings = dict(getattr(data, "timings_ms", {}) or {})
-        timings.update(est.timings_ms or {})
-        return replace(est, timings_ms=timings, valid_node_fraction=data.valid_fraction)
-
-    def set_reference(self, frames: list[Frame]) -> None:
-        from bubble_rt.estimation.deformation import Reference
-
-        # The FEM estimator depends on the mesh only: keep it (and its factorisation).
-        self._build(Reference.capture(frames), estimator=self.kind != "fem")
-
-    def reconfigure(self, params: dict[str, float]) -> None:
-        changes: dict[str, Any] = {k: v for k, v in params.items() if k != "youngs_modulus"}
-        if "youngs_modulus" in params:
-            changes["material"] = replace(self.est_config.material, E=params["youngs_modulus"])
-        self.est_config = replace(self.est_config, **changes)
-        if hasattr(self.estimator, "reconfigure"):
-            self.estimator.reconfigure(**changes)
-        else:  # an estimator without live reconfiguration: rebuild it
-            self._build(self.reference)
-
-
-# ------------------------------------------------------------------------ mesh helpers
-def lumped_areas(vertices: NDArray, triangles: NDArray) -> NDArray[np.float64]:
-    """(N,) lumped node areas: a third of every incident triangle's area, m^2."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles)
-    a = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
-    out = np.zeros(len(v))
-    for k in range(3):
-        np.add.at(out, t[:, k], a / 3.0)
-    return out
-
-
-class PatchFinder:
-    """Contact patches: connected components of the contact mask over mesh edges."""
-
-    def __init__(self, mesh: Mesh) -> None:
-        import scipy.sparse as sp
-
-        t = np.asarray(mesh.triangles)
-        n = mesh.n_nodes
-        i = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
-        j = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
-        self.adjacency = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
-        self.areas = lumped_areas(mesh.vertices, mesh.triangles)
-
-    def patches(
-        self, contact: NDArray, node_forces: NDArray, displacements: NDArray | None = None
-    ) -> list[protocol.Patch]:
-        from scipy.sparse.csgraph import connected_components
-
-        idx = np.flatnonzero(np.asarray(contact, dtype=bool))
-        if idx.size == 0:
-            return []
-        sub = self.adjacency[idx][:, idx]
-        n_comp, labels = connected_components(sub, directed=False)
-        pos = self.vertices if displacements is None else self.vertices + displacements
-        out = []
-        for c in range(n_comp):
-            nodes = idx[labels == c]
-            a = self.areas[nodes]
-            area = float(a.sum())
-            w = a / area if area > 0 else np.full(len(nodes), 1.0 / len(nodes))
-            out.append(
-                protocol.Patch(
-                    centroid=w @ pos[nodes],
-                    area=area,
-                    force=np.asarray(node_forces, dtype=np.float64)[nodes].sum(axis=0),
-                    nodes=nodes.astype(np.int64),
-                )
-            )
-        out.sort(key=lambda p: -float(np.linalg.norm(p.force)))
-        return out
 
 
 # ------------------------------------------------------------------------ daemon
@@ -231,24 +68,6 @@ class _Item:
 
 class DaemonError(RuntimeError):
     """The daemon cannot start (socket in use, source missing, ...)."""
-
-
-PARAM_CONFIG_KEYS = {k: k for k in LIVE_PARAMS}
-
-
-def validate_params(params: dict[str, float]) -> str | None:
-    """None when the Params are acceptable, else the error text naming the parameter.
-
-    The ranges are the configuration's (``bubble_rt.config.ESTIMATOR_RANGES``): nothing is
-    applied unless every value given is acceptable.
-    """
-    if not params:
-        return "set_params: no parameter given (set one of " + ", ".join(PARAM_CONFIG_KEYS) + ")"
-    for k, v in params.items():
-        err = param_problem(k, v)
-        if err:
-            return f"set_params: {k} {err}"
-    return None
 
 
 class Daemon:
@@ -286,6 +105,9 @@ class Daemon:
         self._collecting: list[Frame] = []
         self.recorder: Any = None
         self._recording_fault_counted = False
+        #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
+        #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0
         self.errors: dict[str, int] = {}
@@ -334,7 +156,7 @@ class Daemon:
         self.control_address = str(self.ctl.getsockopt_string(zmq.LAST_ENDPOINT))
         if cfg.recording.path:
             try:
-                self._start_recording(cfg.recording.path, cfg.recording.overwrite)
+                self.start_recording(cfg.recording.path, cfg.recording.overwrite)
             except ValueError as exc:
                 self._close_sockets()
                 raise DaemonError(f"cannot record: {exc}") from exc
@@ -367,6 +189,8 @@ class Daemon:
             self._pressure_arg[1].stop(0.2)
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
+        for viewer in self.viewers:
+            viewer.close()
         if self.recorder is not None:
             rec, self.recorder = self.recorder, None
             rec.close(timeout=max(0.1, deadline - time.monotonic()))
@@ -481,7 +305,7 @@ class Daemon:
                 )
                 self.processor = proc
                 if self.recorder is not None:
-                    self.recorder.write_message(recording_topic("mesh"), self.mesh_msg)
+                    self.recorder.write_message(TOPIC_MESH, self.mesh_msg)
             else:
                 with self._proc_lock:
                     self.processor.set_reference(frames)
@@ -492,6 +316,19 @@ class Daemon:
             self._error("reference", exc)
         finally:
             self._tare_requested = False
+
+    def request_tare(self) -> None:
+        """Capture a new reference from the next untouched frames."""
+        self._collecting = []
+        self._tare_requested = True
+
+    def queue_params(self, params: dict[str, float]) -> EstimatorSection:
+        """Apply validated Params before the next solve; returns the new [estimator] section."""
+        with self._state_lock:
+            self._pending_params.update(params)
+            est = replace(self.config.estimator, **params)  # type: ignore[arg-type]
+            self.config = replace(self.config, estimator=est)
+        return est
 
     # ---------------------------------------------------------------- stage 2
     def _stage2_loop(self) -> None:
@@ -568,96 +405,16 @@ class Daemon:
         rec = self.recorder
         if rec is not None:
             rec.write_force(msg)
+        for viewer in self.viewers:
+            viewer.on_frame(
+                item.frame, msg, self.mesh_msg, rec, getattr(est, "displacements", None)
+            )
 
     def _send(self, topic: bytes, msg: Any) -> None:
         try:
             self.pub.send_multipart([topic, msg.SerializeToString()], flags=zmq.NOBLOCK)
         except zmq.Again:
             pass  # PUB drops at the high-water mark; never block the pipeline
-
-    # ---------------------------------------------------------------- status
-    @property
-    def frames_dropped(self) -> int:
-        cam_drops = self._camera_src.output.dropped if self._camera_src is not None else 0
-        return cam_drops + self._mid.dropped
-
-    def state(self, now: float | None = None) -> tuple[int, str]:
-        """(Status.State value, reason)."""
-        now = time.time() if now is None else now
-        cam = self._camera_src
-        stall = self.config.camera.stall_timeout_s
-        last = self._last_frame_time or self._started_at
-        cam_reason = ""
-        if now - last > stall:
-            cam_reason = f"camera stalled: no frame for {now - last:.1f} s"
-            if cam is not None and cam.stats.last_error:
-                cam_reason += f" ({cam.stats.last_error})"
-            if cam is not None and cam.finished.is_set():
-                cam_reason = "camera source ended"
-        if self.processor is None:
-            reason = f"capturing reference ({len(self._collecting)}/{self.config.reference.frames})"
-            if self.last_error and now - self.last_error_time < 5.0:
-                reason += f"; {self.last_error}"
-            if cam_reason:
-                reason += f"; {cam_reason}"
-            return pb.Status.STARTING, reason
-        if cam_reason:
-            return pb.Status.DEGRADED, cam_reason
-        rec = self.recorder
-        if rec is not None and rec.failed:
-            if not self._recording_fault_counted:
-                self._recording_fault_counted = True
-                self._error("recording", rec.failed)
-            return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
-        bad = faults.bad_frame_reason(cam, now)
-        if bad:
-            return pb.Status.DEGRADED, bad
-        if self.frames_published == 0:
-            reason = "reference captured, waiting for the first force frame"
-            if self.last_error:
-                reason += f"; {self.last_error}"
-            return pb.Status.STARTING, reason
-        if self._tare_requested:
-            return pb.Status.DEGRADED, "taring: capturing a new reference"
-        t_deg, reasons = self._last_degraded
-        if reasons and now - t_deg < 1.0:
-            return pb.Status.DEGRADED, "; ".join(reasons)
-        if self.last_error and now - self.last_error_time < 2.0:
-            return pb.Status.DEGRADED, self.last_error
-        return pb.Status.RUNNING, ""
-
-    def status_message(self, stopped: bool = False) -> Any:
-        now = time.time()
-        state, reason = (pb.Status.STOPPED, "shut down") if stopped else self.state(now)
-        recent = [t for t in list(self._publish_times) if now - t < 5.0]
-        rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 2 else 0.0
-        msg = pb.Status(
-            protocol_version=protocol.PROTOCOL_VERSION,
-            sensor_id=self.sensor_id,
-            state=state,
-            reason=reason,
-            time_ns=time.time_ns(),
-            frame_rate_hz=rate,
-            frames_published=self.frames_published,
-            frames_dropped=self.frames_dropped,
-            recording=faults.recording_state(self.recorder)[0],
-            recording_path=str(self.recorder.path) if self.recorder is not None else "",
-            recording_error=faults.recording_state(self.recorder)[1],
-            recording_dropped=faults.recording_state(self.recorder)[2],
-            mesh_id=self.mesh_msg.mesh_id if self.mesh_msg is not None else "",
-            uptime_s=now - self._started_at,
-        )
-        lat = np.asarray(list(self._latencies)[-300:])
-        if lat.size:
-            p50, p90, p99 = np.percentile(lat, [50, 90, 99])
-            msg.latency.p50_ms, msg.latency.p90_ms = float(p50), float(p90)
-            msg.latency.p99_ms, msg.latency.max_ms = float(p99), float(lat.max())
-        srcs = [self._camera_src] + ([self._pressure_src] if self._pressure_src else [])
-        for s in srcs:
-            if s is not None:
-                faults.add_source_stats(msg, s.stats, now)
-        faults.add_daemon_stats(msg, dict(self.errors), self.last_error)
-        return msg
 
     # ---------------------------------------------------------------- control
     def _control_loop(self) -> None:
@@ -687,6 +444,8 @@ class Daemon:
                     self._send(protocol.status_topic(self.sensor_id), msg)
                 if self.recorder is not None:
                     self.recorder.write_status(msg)
+                for viewer in self.viewers:
+                    viewer.on_status(msg, self.recorder)
 
     def _answer(self, frames: list[bytes]) -> None:
         ident, rest = frames[0], frames[1:]
@@ -708,74 +467,30 @@ class Daemon:
         except zmq.ZMQError:
             pass
 
+    # ---------------------------------------------------------------- status
+    @property
+    def frames_dropped(self) -> int:
+        return health.frames_dropped(self)
+
+    def state(self, now: float | None = None) -> tuple[int, str]:
+        """(Status.State value, reason)."""
+        return health.state(self, now)
+
+    def status_message(self, stopped: bool = False) -> Any:
+        return health.status_message(self, stopped)
+
     def handle_request(self, payload: bytes) -> Any:
         """Answer one serialized ControlRequest (never raises for bad input)."""
-        try:
-            kind, req = protocol.parse_request(payload)
-        except protocol.ProtocolError as exc:
-            return protocol.error_reply(str(exc))
-        if kind == "get_mesh":
-            if self.mesh_msg is None:
-                return protocol.error_reply(
-                    "mesh not ready: the daemon is still capturing the reference frames"
-                )
-            return protocol.ok_reply(mesh=self.mesh_msg)
-        if kind == "get_config":
-            return protocol.ok_reply(config_toml=self.config.to_toml())
-        if kind == "get_status":
-            return protocol.ok_reply(status=self.status_message())
-        if kind == "set_params":
-            params = protocol.params_dict(req.set_params)
-            err = validate_params(params)
-            if err:
-                return protocol.error_reply(err)
-            with self._state_lock:
-                self._pending_params.update(params)
-                est = replace(self.config.estimator, **params)  # type: ignore[arg-type]
-                self.config = replace(self.config, estimator=est)
-            out = pb.Params(**{k: getattr(est, k) for k in PARAM_CONFIG_KEYS})
-            return protocol.ok_reply(params=out)
-        if kind == "tare":
-            if self.processor is None:
-                return protocol.error_reply("tare: the reference is still being captured")
-            self._collecting = []
-            self._tare_requested = True
-            return protocol.ok_reply()
-        if kind == "record_start":
-            rec = self.recorder
-            if rec is not None and not rec.failed:
-                return protocol.error_reply(f"already recording to {rec.path}")
-            try:
-                path = faults.recording_path(req.record_start.path, self.config.recording.directory)
-                self._start_recording(str(path), req.record_start.overwrite)
-            except Exception as exc:
-                return protocol.error_reply(f"record_start: refused: {exc}")
-            if rec is not None:  # a failed recording is replaced by the new one
-                rec.close(timeout=0.0)
-            return protocol.ok_reply(recording_path=str(path.resolve()))
-        if kind == "record_stop":
-            rec = self.recorder
-            if rec is None:
-                return protocol.error_reply("record_stop: not recording")
-            self.recorder = None
-            ok, text = faults.stop_recorder(rec)
-            if not ok:
-                return protocol.error_reply(text)
-            return protocol.ok_reply(recording_path=text)
-        return protocol.error_reply(f"unknown request {kind!r}")  # pragma: no cover
+        return control.handle_request(self, payload)
 
-    def _start_recording(self, path: str, overwrite: bool = False) -> None:
+    def start_recording(self, path: str, overwrite: bool = False) -> None:
+        """Record to the MCAP file ``path`` from now on (raises RecordingPathError with the
+        reason: existing file without ``overwrite``, not a regular file, no such folder)."""
         rec = faults.start_recorder(
             path, self.config, self.camera, self.mesh_msg, self._ref_frames, overwrite
         )
         self._recording_fault_counted = False
         self.recorder = rec
-
-
-def recording_topic(name: str) -> str:
-    from bubble_rt.io import mcap as recording
-
-    return {"mesh": recording.TOPIC_MESH}[name]
 
 
 def run(config: DaemonConfig, stop: threading.Event, **kwargs: Any) -> Daemon:

@@ -371,13 +371,8 @@ def SimCamera(
     memory and later passes replay it, leaving the CPU to the estimator (the noise then
     repeats every loop).
     """
-    try:
-        from bubble_rt.sim import Simulator
-    except ImportError:
-        try:
-            from bubble_rt.sim.simulator import Simulator
-        except ImportError as exc:
-            raise SourceError(f"the simulator is not available: {exc}") from exc
+    from bubble_rt.sim import Simulator
+
     last = [-1]
 
     def progress(done: int, total: int) -> None:
@@ -391,14 +386,8 @@ def SimCamera(
                 total,
             )
 
-    import inspect
-
     try:
-        takes_progress = "progress" in inspect.signature(Simulator).parameters
-    except (TypeError, ValueError):
-        takes_progress = False
-    try:
-        sim = Simulator(scene, progress=progress) if takes_progress else Simulator(scene)
+        sim = Simulator(scene, progress=progress)
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)
@@ -455,8 +444,11 @@ def restamp_reference(frames: list[Frame]) -> list[Frame]:
     return out
 
 
-def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> IterableCamera:
-    """A recording: this project's MCAP files or the punyo layout (``recordings``).
+def ReplayCamera(
+    path: str, realtime: bool = True, loop: bool = False, **bag_options: Any
+) -> IterableCamera:
+    """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
+    (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps.
 
     A frame that cannot be read (truncated or garbage file, wrong shape or dtype, no valid
     depth, NaN pressure) is skipped, counted (``stats.errors["bad_frame"]``) and named in
@@ -468,13 +460,15 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
     import warnings
     from pathlib import Path
 
+    from bubble_rt.io.rosbag import is_rosbag
+
     p = Path(path)
     if not p.exists():
         raise SourceError(f"replay: no such recording {path!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
     report: Any = None
     try:
-        if p.suffix == ".mcap":
+        if p.suffix == ".mcap" and not is_rosbag(p):
             from bubble_rt.io.mcap import McapRecording
 
             with warnings.catch_warnings():
@@ -486,12 +480,13 @@ def ReplayCamera(path: str, realtime: bool = True, loop: bool = False) -> Iterab
         else:
             from bubble_rt.io.recordings import open_recording
 
-            rec = open_recording(p)
+            rec = open_recording(p, **bag_options)
     except Exception as exc:
         raise SourceError(f"replay: cannot read {path}: {exc}") from exc
 
     def frames() -> Iterator[Any]:
-        return rec.frames(faults=True)
+        # Bags yield frames only; the project's recordings also name the frames they skip.
+        return rec.frames(faults=True) if hasattr(rec, "frames") else iter(rec)
 
     src = IterableCamera(
         frames,

@@ -36,8 +36,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from bubble_rt.estimation.estimator import Estimate
 from bubble_rt.estimation.solver import SolverInfo
+from bubble_rt.estimation.types import Estimate
 from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
 
 __all__ = [

@@ -7,15 +7,17 @@ camera cannot see, with missing depth or unreliable flow are flagged and their d
 filled from valid neighbours by a Laplacian solve over the mesh, so no NaN leaves this stage.
 
 The heavy parts (flow, hole filling, lifting) run in C++ (``bubble_rt._core``) with the GIL
-released. Method "oracle" skips images and asks the simulator's ground truth instead.
+released. Trackers are made by flow-method name (:func:`make_tracker`): the image methods here,
+and "oracle" (the simulator's ground-truth displacements, no images), which the simulator
+registers (``bubble_rt.sim.oracle``) so that estimation never reads a frame's ground truth.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,11 +25,16 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
+from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS, IMAGE_FLOW_METHODS
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 
-FLOW_METHODS = ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "farneback_heavy", "oracle")
 _DIS_PRESETS = {"dis_ultrafast": 0, "dis_fast": 1, "dis_medium": 2}
+
+#: The public implementation's Farneback parameters (method "farneback_heavy").
+FARNEBACK_PUBLIC: dict[str, Any] = dict(
+    pyr_scale=0.5, levels=30, winsize=50, iterations=5, poly_n=7, poly_sigma=1.5, gaussian=True
+)
 
 #: Reasons a node is flagged (bits of ``Deformation.flags``).
 FLAG_OUTSIDE_IMAGE = 1
@@ -44,8 +51,8 @@ class FlowSettings:
     Attributes:
         method: "dis_ultrafast" | "dis_fast" | "dis_medium" (OpenCV DISOpticalFlow presets),
             "farneback" (the Farneback fields below), "farneback_heavy" (the public
-            implementation's set: pyr_scale 0.5, levels 30, winsize 50, iterations 5, poly_n 7,
-            poly_sigma 1.5, Gaussian window), or "oracle" (simulator ground truth, no images).
+            implementation's set, FARNEBACK_PUBLIC), or "oracle" (simulator ground truth, no
+            images; the simulator provides that tracker).
         scale: images are resized by this factor (0 < scale <= 1) before the flow.
         margin_px: margin (pixels) around the box the mesh projects into; flow is computed
             only inside that region.
@@ -68,14 +75,9 @@ class FlowSettings:
             membrane).
         outlier_m: a node whose U differs by more than this from the median of its measured
             neighbours is flagged (isolated depth/flow glitches); None disables.
-        anchor: "mesh" takes x_ref as the mesh node itself (the mesh is fitted to the reference
-            surface); "depth" lifts the node's pixel through the reference depth instead, so
-            that fitting residuals cancel exactly.
     """
 
-    # Default from bench/deformation_bench.py: the fastest setting whose RMS flow error on the
-    # synthetic warp is <= 0.1 px (0.068 px): DIS ultrafast refined down to pyramid level 1.
-    method: str = "dis_ultrafast"
+    method: str = DEFAULT_FLOW_METHOD
     scale: float = 1.0
     margin_px: int = 24
     forward_backward: bool = False
@@ -94,7 +96,6 @@ class FlowSettings:
     clamp_rim: bool = True
     max_displacement_m: float = 0.03
     outlier_m: float | None = 0.004
-    anchor: str = "mesh"
 
     def __post_init__(self) -> None:
         if self.method not in FLOW_METHODS:
@@ -103,21 +104,11 @@ class FlowSettings:
             raise ValueError(f"flow scale must be in (0, 1], got {self.scale}")
         if self.margin_px < 0:
             raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
-        if self.anchor not in ("mesh", "depth"):
-            raise ValueError(f"anchor must be 'mesh' or 'depth', got {self.anchor!r}")
 
     def farneback_params(self) -> dict[str, Any]:
         """Farneback parameters in effect (the heavy set for method "farneback_heavy")."""
         if self.method == "farneback_heavy":
-            return dict(
-                pyr_scale=0.5,
-                levels=30,
-                winsize=50,
-                iterations=5,
-                poly_n=7,
-                poly_sigma=1.5,
-                gaussian=True,
-            )
+            return dict(FARNEBACK_PUBLIC)
         return dict(
             pyr_scale=self.pyr_scale,
             levels=self.levels,
@@ -164,7 +155,7 @@ class Reference:
         if all(f.rgb is not None for f in frames):
             acc = np.zeros(frames[0].rgb.shape, np.float64)  # type: ignore[union-attr]
             for f in frames:
-                acc += f.rgb  # type: ignore[arg-type]
+                acc += f.rgb
             rgb = np.clip(np.rint(acc / len(frames)), 0, 255).astype(np.uint8)
         depth = None
         if all(f.depth is not None for f in frames):
@@ -178,10 +169,6 @@ class Reference:
             depth = np.where(n > 0, s / np.maximum(n, 1), 0.0).astype(np.float32)
         pressure = float(np.mean([f.pressure_pa for f in frames]))
         return cls(rgb=rgb, depth=depth, pressure_pa=pressure, t=frames[-1].t, n_frames=len(frames))
-
-    def tare(self, frames: Sequence[Frame] | Frame) -> Reference:
-        """A fresh reference from new untouched frames (same as ``Reference.capture``)."""
-        return Reference.capture(frames)
 
 
 @dataclass
@@ -209,12 +196,7 @@ class Deformation:
 
 def mesh_laplacian(mesh: Mesh) -> sp.csr_matrix:
     """Uniform graph Laplacian (N x N, D - A) of the mesh edges."""
-    t = mesh.triangles
-    i = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
-    j = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
-    n = mesh.n_nodes
-    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
+    A = mesh.adjacency()
     deg = np.asarray(A.sum(axis=1)).ravel()
     return (sp.diags(deg) - A).tocsr()
 
@@ -261,91 +243,67 @@ def _roi(uv: NDArray, ok: NDArray, camera: Camera, margin: int) -> tuple[int, in
     return x0, y0, max(x1 - x0, 8), max(y1 - y0, 8)
 
 
-class DeformationTracker:
-    """Turns frames into node displacements against a fixed reference.
+class Tracker(Protocol):
+    """What the pipeline needs from a deformation tracker."""
 
-    Args:
-        mesh: the reference mesh (mesh frame; nodes on the reference surface).
-        camera: camera model; ``camera.pose`` maps camera to mesh coordinates.
-        reference: captured untouched state (its RGB is the flow reference).
-        settings: FlowSettings.
-    """
+    def track(self, frame: Frame) -> Deformation: ...
 
-    def __init__(
-        self,
-        mesh: Mesh,
-        camera: Camera,
-        reference: Reference,
-        settings: FlowSettings | None = None,
-    ) -> None:
+    def set_reference(self, reference: Reference) -> None: ...
+
+
+#: (mesh, camera, reference, settings) -> Tracker
+TrackerFactory = Callable[[Mesh, Camera, Reference, FlowSettings], Tracker]
+_TRACKERS: dict[str, TrackerFactory] = {}
+
+
+def register_tracker(method: str, factory: TrackerFactory) -> None:
+    """Make flow method ``method`` (one of FLOW_METHODS) build its tracker with ``factory``."""
+    if method not in FLOW_METHODS:
+        raise ValueError(f"flow method {method!r} unknown; choose one of {FLOW_METHODS}")
+    _TRACKERS[method] = factory
+
+
+def make_tracker(
+    mesh: Mesh, camera: Camera, reference: Reference, settings: FlowSettings | None = None
+) -> Tracker:
+    """The deformation tracker of ``settings.method`` (image methods: DeformationTracker)."""
+    settings = settings or FlowSettings()
+    factory = _TRACKERS.get(settings.method)
+    if factory is None:
+        raise ValueError(
+            f"flow method {settings.method!r} has no tracker here: the simulator provides it "
+            "(import bubble_rt.sim first)"
+        )
+    return factory(mesh, camera, reference, settings)
+
+
+class NodeTracker:
+    """What every tracker shares: the mesh, the reference, and turning raw per-node
+    displacements and flags into a :class:`Deformation` (outlier flags, rim clamp, harmonic
+    fill of the flagged nodes)."""
+
+    def __init__(self, mesh: Mesh, reference: Reference, settings: FlowSettings) -> None:
         self.mesh = mesh
-        self.camera = camera
         self.reference = reference
-        self.settings = settings or FlowSettings()
+        self.settings = settings
+        self.x_ref = np.array(mesh.vertices, dtype=np.float64)
         self._laplacian = mesh_laplacian(mesh)
         self._rim = np.zeros(mesh.n_nodes, bool)
         self._rim[mesh.boundary] = True
         self._neighbours = _neighbour_table(self._laplacian)
-        uv, z = camera.project(mesh.vertices)
-        self.uv_ref = np.ascontiguousarray(uv, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            inside = (
-                np.isfinite(uv).all(axis=1)
-                & (z > 0)
-                & (uv[:, 0] >= -0.5)
-                & (uv[:, 1] >= -0.5)
-                & (uv[:, 0] <= camera.width - 0.5)
-                & (uv[:, 1] <= camera.height - 0.5)
-            )
-        self.visible = inside
-        self._flow: Any = None
-        self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
-        self.set_reference(reference)
 
     def set_reference(self, reference: Reference) -> None:
-        """Measure against a new reference from now on (tare); mesh and camera stay."""
-        from bubble_rt import _core
-
-        camera, s = self.camera, self.settings
-        self.x_ref = np.array(self.mesh.vertices, dtype=np.float64)
-        if s.method == "oracle":
-            self.reference = reference
-            return
-        if reference.rgb is None or reference.depth is None:
-            raise FrameError("reference has no rgb/depth: image methods need an RGBD reference")
-        Frame(reference.rgb, None, reference.pressure_pa).validate(camera)
-        if reference.depth.shape != (camera.height, camera.width):
-            raise FrameError(
-                f"reference depth size {reference.depth.shape[1]} x {reference.depth.shape[0]} "
-                f"differs from the camera's {camera.width} x {camera.height}"
-            )
-        if self._flow is None:
-            self._flow = _core._OpticalFlow(
-                method=1 if s.method in _DIS_PRESETS else 0,
-                dis_preset=_DIS_PRESETS.get(s.method, 2),
-                scale=s.scale,
-                forward_backward=s.forward_backward,
-                dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
-                dis_refinement_iterations=(
-                    -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
-                ),
-                **s.farneback_params(),
-            )
-        self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
+        """Measure against a new reference from now on (tare)."""
         self.reference = reference
-        if s.anchor == "depth":
-            pts, flags = self._lift(reference.depth, self.uv_ref)
-            ok = flags == 0
-            self.x_ref[ok] = pts[ok]
 
-    # ------------------------------------------------------------------ helpers
-    def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
-        s = self.settings
-        return _lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
+    def dp(self, frame: Frame) -> float:
+        """Pressure change of ``frame`` against the reference, Pa."""
+        return float(frame.pressure_pa) - float(self.reference.pressure_pa)
 
-    def _finish(
+    def finish(
         self, U: NDArray, flags: NDArray, dp: float, timings: dict[str, float], flow: NDArray
     ) -> Deformation:
+        """The Deformation from raw displacements ``U`` (N x 3, may hold NaN) and FLAG_* bits."""
         s = self.settings
         flags = flags.astype(np.uint8)
         flags[~np.isfinite(U).all(axis=1)] |= FLAG_NON_FINITE
@@ -371,22 +329,85 @@ class DeformationTracker:
             flow=flow,
         )
 
+
+class DeformationTracker(NodeTracker):
+    """Turns frames into node displacements against a fixed reference (optical flow + lifting).
+
+    Args:
+        mesh: the reference mesh (mesh frame; nodes on the reference surface).
+        camera: camera model; ``camera.pose`` maps camera to mesh coordinates.
+        reference: captured untouched state (its RGB is the flow reference).
+        settings: FlowSettings (an image method; "oracle" is the simulator's tracker).
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        reference: Reference,
+        settings: FlowSettings | None = None,
+    ) -> None:
+        settings = settings or FlowSettings()
+        if settings.method not in IMAGE_FLOW_METHODS:
+            raise ValueError(
+                f"DeformationTracker runs the image methods {IMAGE_FLOW_METHODS}, not "
+                f"{settings.method!r} (use make_tracker)"
+            )
+        super().__init__(mesh, reference, settings)
+        self.camera = camera
+        uv, z = camera.project(mesh.vertices)
+        self.uv_ref = np.ascontiguousarray(uv, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            inside = (
+                np.isfinite(uv).all(axis=1)
+                & (z > 0)
+                & (uv[:, 0] >= -0.5)
+                & (uv[:, 1] >= -0.5)
+                & (uv[:, 0] <= camera.width - 0.5)
+                & (uv[:, 1] <= camera.height - 0.5)
+            )
+        self.visible = inside
+        self._flow: Any = None
+        self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
+        self.set_reference(reference)
+
+    def set_reference(self, reference: Reference) -> None:
+        """Measure against a new reference from now on (tare); mesh and camera stay."""
+        from bubble_rt import _core
+
+        camera, s = self.camera, self.settings
+        if reference.rgb is None or reference.depth is None:
+            raise FrameError("reference has no rgb/depth: image methods need an RGBD reference")
+        Frame(reference.rgb, None, reference.pressure_pa).validate(camera)
+        if reference.depth.shape != (camera.height, camera.width):
+            raise FrameError(
+                f"reference depth size {reference.depth.shape[1]} x {reference.depth.shape[0]} "
+                f"differs from the camera's {camera.width} x {camera.height}"
+            )
+        if self._flow is None:
+            self._flow = _core._OpticalFlow(
+                method=1 if s.method in _DIS_PRESETS else 0,
+                dis_preset=_DIS_PRESETS.get(s.method, 2),
+                scale=s.scale,
+                forward_backward=s.forward_backward,
+                dis_finest_scale=-1 if s.dis_finest_scale is None else s.dis_finest_scale,
+                dis_refinement_iterations=(
+                    -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
+                ),
+                **s.farneback_params(),
+            )
+        self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
+        self.reference = reference
+
+    # ------------------------------------------------------------------ helpers
+    def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
+        s = self.settings
+        return _lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
+
     # ------------------------------------------------------------------ per frame
     def track(self, frame: Frame) -> Deformation:
         """Displacements of the mesh nodes in ``frame`` against the reference."""
-        n = self.mesh.n_nodes
-        dp = float(frame.pressure_pa) - float(self.reference.pressure_pa)
-        if self.settings.method == "oracle":
-            t0 = time.perf_counter()
-            if frame.truth is None:
-                raise FrameError("truth is missing: method 'oracle' needs simulator frames")
-            x_cur = np.asarray(frame.truth.displace(self.x_ref), dtype=np.float64)
-            if x_cur.shape != (n, 3):
-                raise FrameError(f"truth.displace returned shape {x_cur.shape}, want ({n}, 3)")
-            flags = np.zeros(n, np.uint8)
-            flags[~np.isfinite(x_cur).all(axis=1)] |= FLAG_NON_FINITE
-            timings = {"flow": 0.0, "lift": (time.perf_counter() - t0) * 1e3}
-            return self._finish(x_cur - self.x_ref, flags, dp, timings, np.zeros((n, 2)))
+        dp = self.dp(frame)
         frame.validate(self.camera, need_images=True)
         t0 = time.perf_counter()
         self._flow.compute(np.ascontiguousarray(frame.rgb))
@@ -398,16 +419,20 @@ class DeformationTracker:
         x_cur, lift_flags = self._lift(frame.depth, self.uv_ref + flow)  # type: ignore[arg-type]
         flags |= lift_flags
         U = x_cur - self.x_ref
-        out = self._finish(U, flags, dp, {}, flow)
+        out = self.finish(U, flags, dp, {}, flow)
         t3 = time.perf_counter()
         out.timings_ms = {"flow": (t1 - t0) * 1e3, "lift": (t3 - t1) * 1e3}
         return out
 
 
+for _method in IMAGE_FLOW_METHODS:
+    register_tracker(_method, DeformationTracker)
+
+
 def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
     from scipy.ndimage import map_coordinates
 
-    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")  # type: ignore[no-any-return]
+    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
 
 
 def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -18,7 +19,16 @@ from numpy.typing import ArrayLike, NDArray
 from bubble_rt import _validate
 from bubble_rt.estimation.membrane import Material, MembraneModel
 from bubble_rt.estimation.solver import GroupLassoSolver, SolverInfo, SolverSettings
+from bubble_rt.estimation.types import Estimate
 from bubble_rt.mesh import Mesh
+
+__all__ = [
+    "CONFIG_KEYS",
+    "Estimate",
+    "EstimatorConfig",
+    "ForceEstimator",
+    "config_changes",
+]
 
 
 @dataclass(frozen=True)
@@ -52,31 +62,37 @@ class EstimatorConfig:
         _validate.finite_scalar("k_linear", self.k_linear)
 
 
-@dataclass
-class Estimate:
-    """One frame's estimate (all arrays over the N mesh nodes, mesh frame).
+#: The TOML ``[estimator]`` keys (daemon config, ``set_params``, ``bubble-rt calibrate``'s output)
+#: and the EstimatorConfig field each one sets: (field, material field or None).
+CONFIG_KEYS: dict[str, tuple[str, str | None]] = {
+    "k_f": ("k_f", None),
+    "k_u": ("k_u", None),
+    "k_const": ("k_const", None),
+    "k_linear": ("k_linear", None),
+    "youngs_modulus": ("material", "E"),
+    "poisson": ("material", "nu"),
+    "thickness": ("material", "thickness"),
+}
 
-    Attributes:
-        node_forces: N x 3 force the object applies on each node (N).
-        contact_pressure: N x 3 node_forces / lumped area (Pa).
-        normal_pressure: (N,) -n . contact_pressure (Pa, inward positive).
-        contact: (N,) bool contact mask.
-        net_force: (3,) sum of node_forces over non-rim nodes (N).
-        displacements: N x 3 corrected displacements U + dU (m), zero on the rim.
-        info: SolverInfo of the solve.
-        timings_ms: stage -> milliseconds ("solve", "post"; "flow", "lift" from process()).
-        valid_node_fraction: fraction of nodes the deformation stage measured (1.0 for U given).
-    """
 
-    node_forces: NDArray[np.float64]
-    contact_pressure: NDArray[np.float64]
-    normal_pressure: NDArray[np.float64]
-    contact: NDArray[np.bool_]
-    net_force: NDArray[np.float64]
-    displacements: NDArray[np.float64]
-    info: SolverInfo
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    valid_node_fraction: float = 1.0
+def config_changes(config: EstimatorConfig, values: Mapping[str, float]) -> dict[str, Any]:
+    """``dataclasses.replace`` changes of ``config`` for ``[estimator]`` key values (CONFIG_KEYS);
+    ValueError names a key that is not one."""
+    changes: dict[str, Any] = {}
+    material: dict[str, float] = {}
+    for key, value in values.items():
+        if key not in CONFIG_KEYS:
+            raise ValueError(
+                f"{key!r} is not an estimator parameter; use one of {list(CONFIG_KEYS)}"
+            )
+        name, sub = CONFIG_KEYS[key]
+        if sub is None:
+            changes[name] = float(value)
+        else:
+            material[sub] = float(value)
+    if material:
+        changes["material"] = replace(config.material, **material)
+    return changes
 
 
 class _Tracker(Protocol):
@@ -170,21 +186,3 @@ class ForceEstimator:
         est.timings_ms = timings
         est.valid_node_fraction = float(getattr(d, "valid_fraction", 1.0))
         return est
-
-
-def make_estimator(
-    kind: str,
-    mesh: Mesh,
-    config: EstimatorConfig | None = None,
-    camera: Any = None,
-    reference: Any = None,
-) -> Any:
-    """An estimator by name: "fem" (ForceEstimator) or "frictionless" (Kuppuswamy baseline,
-    needs ``camera`` and ``reference``)."""
-    if kind == "fem":
-        return ForceEstimator(mesh, config)
-    if kind == "frictionless":
-        from bubble_rt.estimation.baseline import FrictionlessEstimator  # type: ignore[import-not-found]
-
-        return FrictionlessEstimator(mesh, camera, reference, config)
-    raise ValueError(f"unknown estimator kind {kind!r}; choose 'fem' or 'frictionless'")

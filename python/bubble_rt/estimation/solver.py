@@ -24,15 +24,20 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from bubble_rt import _validate
+from bubble_rt import _core, _validate
 from bubble_rt.estimation.membrane import MembraneModel
 
 Status = Literal["solved", "max_iter_reached", "time_limit_reached", "non_finite_input"]
 
 
+#: The C++ defaults (bubble::SolverSettings in cpp/group_lasso.h), read through the binding.
+_CORE_DEFAULTS = _core._SolverSettings()
+
+
 @dataclass(frozen=True)
 class SolverSettings:
-    """ADMM settings (mirrors bubble::SolverSettings in cpp/group_lasso.h).
+    """ADMM settings (mirrors bubble::SolverSettings in cpp/group_lasso.h; the defaults are
+    the C++ ones, read through the binding).
 
     Attributes:
         rho: step-size multiplier. The actual ADMM rho of the (non-dimensionalised) problem
@@ -58,20 +63,20 @@ class SolverSettings:
             restarts automatically when the fixed-point residual jumps.
     """
 
-    rho: float = 0.5
-    sigma: float = 1e-6
-    alpha: float = 1.6
-    adaptive_rho: bool = True
-    adaptive_rho_tolerance: float = 2.0
-    adaptive_rho_interval: int = 25
-    eps_abs: float = 1e-5
-    eps_rel: float = 8e-4
-    max_iter: int = 4000
-    check_interval: int = 5
-    time_limit: float = 0.0
-    scaling_iter: int = 0
-    warm_start: bool = True
-    anderson_memory: int = 5
+    rho: float = float(_CORE_DEFAULTS.rho)
+    sigma: float = float(_CORE_DEFAULTS.sigma)
+    alpha: float = float(_CORE_DEFAULTS.alpha)
+    adaptive_rho: bool = bool(_CORE_DEFAULTS.adaptive_rho)
+    adaptive_rho_tolerance: float = float(_CORE_DEFAULTS.adaptive_rho_tolerance)
+    adaptive_rho_interval: int = int(_CORE_DEFAULTS.adaptive_rho_interval)
+    eps_abs: float = float(_CORE_DEFAULTS.eps_abs)
+    eps_rel: float = float(_CORE_DEFAULTS.eps_rel)
+    max_iter: int = int(_CORE_DEFAULTS.max_iter)
+    check_interval: int = int(_CORE_DEFAULTS.check_interval)
+    time_limit: float = float(_CORE_DEFAULTS.time_limit)
+    scaling_iter: int = int(_CORE_DEFAULTS.scaling_iter)
+    warm_start: bool = bool(_CORE_DEFAULTS.warm_start)
+    anderson_memory: int = int(_CORE_DEFAULTS.anderson_memory)
 
     def __post_init__(self) -> None:
         try:
@@ -86,8 +91,6 @@ class SolverSettings:
         return replace(base, **changes)  # type: ignore[arg-type]
 
     def _to_core(self):  # noqa: ANN202 - private binding type
-        from bubble_rt import _core
-
         s = _core._SolverSettings()
         for k, v in asdict(self).items():
             setattr(s, k, v)
@@ -160,8 +163,6 @@ class GroupLassoSolver:
         k_u: float = 537592.0,
         settings: SolverSettings | None = None,
     ) -> None:
-        from bubble_rt import _core
-
         self.model = model
         self._settings = settings or SolverSettings()
         k_f = _validate.positive("k_f", k_f)

@@ -4,7 +4,7 @@ what accuracy costs in time.
 All figures come from one run on the same rendered 640 x 480 simulated frames:
 
 - per mesh (coarse 227 / medium 390 / fine 749 nodes) and flow method: end-to-end latency of
-  ``ForceEstimator.process(frame)`` (flow + lifting + solve + post) p50 / p99, rate
+  ``Pipeline.process(frame)`` (flow + lifting + solve + post) p50 / p99, rate
   (1000 / p50 latency, Hz), the per-stage medians from ``Estimate.timings_ms`` and the solver's
   iterations;
 - the paper-faithful ``bubble_rt.reference.ReferencePipeline`` on the same frames: median time
@@ -33,10 +33,12 @@ from bubble_rt.eval import (
     contact_iou,
     estimator_config,
     estimator_mesh,
+    flow_settings,
     simulate_trajectory,
 )
+from bubble_rt.mesh import PRESETS
 
-MESHES = ("coarse", "medium", "fine")
+MESHES = PRESETS
 STAGES = ("flow", "lift", "solve", "post")
 
 
@@ -124,9 +126,7 @@ def _resolve_methods(methods: Sequence[str]) -> tuple[str, ...]:
 
 
 def _flow_settings(method: str, scale: float | None = None) -> Any:
-    from bubble_rt.estimation.deformation import FlowSettings
-
-    s = FlowSettings() if method == "default" else FlowSettings(method=method)
+    s = flow_settings(method)
     if scale is not None:
         s = replace(s, scale=scale)
     return s
@@ -136,11 +136,7 @@ def _solver_config(config: Any, tol: float | None) -> Any:
     """The estimator config with the solver's relative tolerance (``eps_rel``) set."""
     if tol is None:
         return config
-    solver = config.solver
-    name = next((n for n in ("eps_rel", "tolerance", "tol") if hasattr(solver, n)), None)
-    if name is None:
-        raise ValueError(f"SolverSettings has no tolerance field: {solver}")
-    return replace(config, solver=replace(solver, **{name: tol}))
+    return replace(config, solver=replace(config.solver, eps_rel=tol))
 
 
 def run_product(
@@ -153,14 +149,13 @@ def run_product(
     warmup: int,
     gt_masks: Sequence[np.ndarray],
 ) -> RunStats:
-    """Time ForceEstimator.process on ``frames[warmup:]`` after ``warmup`` untimed frames
-    (``gt_masks`` aligned with ``frames``)."""
-    from bubble_rt.estimation.deformation import DeformationTracker, Reference
-    from bubble_rt.estimation.estimator import ForceEstimator
+    """Time the FEM pipeline's ``process`` on ``frames[warmup:]`` after ``warmup`` untimed
+    frames (``gt_masks`` aligned with ``frames``)."""
+    from bubble_rt.estimation.pipeline import Pipeline
 
-    reference = Reference.capture(traj.reference_frames)
-    est = ForceEstimator(mesh, config)
-    est.attach(DeformationTracker(mesh, traj.camera, reference, flow))
+    est = Pipeline.capture(
+        traj.reference_frames, traj.camera, mesh=mesh, fit=False, config=config, flow=flow
+    )
     frames = list(frames)
     for fr in frames[:warmup]:
         est.process(fr)

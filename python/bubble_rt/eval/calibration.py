@@ -29,11 +29,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bubble_rt.eval import CALIB_SEED_BASE, FanOut, lumped_areas
+from bubble_rt.estimation.estimator import EstimatorConfig
+from bubble_rt.eval import CALIB_SEED_BASE, FanOut
 
 PARAMS = ("E", "k_f", "k_u")
-#: Paper defaults (method.md section 3).
-DEFAULTS: dict[str, float] = {"E": 1.317e6, "k_f": 0.3322, "k_u": 537592.0}
+#: Paper defaults (method.md section 3): the EstimatorConfig defaults.
+DEFAULTS: dict[str, float] = {
+    "E": EstimatorConfig().material.E,
+    "k_f": EstimatorConfig().k_f,
+    "k_u": EstimatorConfig().k_u,
+}
 
 
 @dataclass(frozen=True)
@@ -94,10 +99,10 @@ def frame_loss(
 # ------------------------------------------------------------------------- estimator factories
 def fem_factory(mesh: Any, params: dict[str, float]) -> Any:
     """The product's FEM estimator for these parameters (E in Pa, k_f, k_u)."""
-    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.registry import make_estimator
     from bubble_rt.eval import estimator_config
 
-    return ForceEstimator(mesh, estimator_config(params))
+    return make_estimator("fem", mesh, estimator_config(params))
 
 
 def _reconfigure(est: Any, params: dict[str, float]) -> bool:
@@ -139,7 +144,7 @@ def chunk_loss(task: ChunkTask) -> list[float]:
     else:
         est = task.factory(task.mesh, task.params)
         _WORKER_ESTIMATORS[task.token] = (task.params["E"], est)
-    areas = lumped_areas(task.mesh.vertices, task.mesh.triangles)
+    areas = task.mesh.lumped_areas()
     out = []
     for fr in task.frames:
         e = est.estimate(fr.U, fr.dp)
@@ -327,9 +332,9 @@ def default_trajectories(
 
 
 def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
-    """Simulate one trajectory and compute its (U, dp) per frame with the deformation tracker."""
-    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.eval import estimator_mesh, simulate_trajectory
+    """Simulate one trajectory and compute its (U, dp) per frame with the pipeline's first
+    stage (flow + lifting)."""
+    from bubble_rt.eval import build_pipeline, estimator_mesh, simulate_trajectory
 
     traj = simulate_trajectory(
         task.geometry,
@@ -341,14 +346,10 @@ def track_trajectory(task: CalibTrajectoryTask) -> tuple[Any, list[CalibFrame]]:
         physics=task.physics,
     )
     mesh = estimator_mesh(task.mesh, traj)
-    reference = Reference.capture(traj.reference_frames)
-    settings = (
-        FlowSettings() if task.flow_method == "default" else FlowSettings(method=task.flow_method)
-    )
-    tracker = DeformationTracker(mesh, traj.camera, reference, settings)
+    pipeline = build_pipeline("fem", mesh, traj, None, task.flow_method)
     out = []
     for frame in traj.frames:
-        d = tracker.track(frame)
+        d = pipeline.deform(frame)
         if not getattr(frame.truth, "converged", True):
             continue  # the simulator flags this ground truth as unreliable: no observation
         out.append(

@@ -39,34 +39,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt.estimation.registry import estimator_kinds
+from bubble_rt.mesh import lumped_areas as lumped_areas  # re-exported for evaluation code
+from bubble_rt.mesh import vertex_normals as vertex_normals
+
 LIGHT_TOUCH_N = 1.5
 GEOMETRIES = ("round", "point", "line", "square", "split")
-ESTIMATORS = ("fem", "frictionless")
-
-
-# ---------------------------------------------------------------------------------- geometry
-def lumped_areas(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
-    """Lumped node areas (N,), m^2: one third of every incident triangle's area."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles)
-    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    a = np.zeros(len(v))
-    for k in range(3):
-        np.add.at(a, t[:, k], area / 3.0)
-    return a
-
-
-def vertex_normals(vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> NDArray:
-    """Area-weighted outward unit normals (N x 3)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles)
-    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, t[:, k], cross)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(norm > 0, norm, 1.0)
+#: The registered estimator kinds (all are evaluated unless a task names some).
+ESTIMATORS = estimator_kinds()
 
 
 # ---------------------------------------------------------------------------------- metrics

@@ -15,9 +15,7 @@ from bubble_rt.eval.metrics import (
     ESTIMATORS,
     FrameMetrics,
     frame_metrics,
-    lumped_areas,
     summarize,
-    vertex_normals,
 )
 
 #: Seeds for evaluation trajectories start here; calibration uses seeds below it.
@@ -68,20 +66,23 @@ class TrajectoryResult:
     fields: dict[str, Any] = field(default_factory=dict)
 
 
+#: Evaluation overrides name Young's modulus "E" (the calibrated parameter); the [estimator]
+#: key is "youngs_modulus".
+_E_KEY = "youngs_modulus"
+
+
 def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) -> Any:
-    """An EstimatorConfig with k_f, k_u, k_const, k_linear and material E overridden."""
+    """An EstimatorConfig with k_f, k_u, k_const, k_linear and material E overridden (other
+    names are ignored)."""
     from dataclasses import replace
 
-    from bubble_rt.estimation.estimator import EstimatorConfig
+    from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
 
     cfg = EstimatorConfig()
     ov = dict(overrides)
-    if "E" in ov:
-        cfg = replace(cfg, material=replace(cfg.material, E=float(ov.pop("E"))))
-    known: dict[str, Any] = {
-        k: float(v) for k, v in ov.items() if k in ("k_f", "k_u", "k_const", "k_linear")
-    }
-    return replace(cfg, **known) if known else cfg
+    keys = {"E": _E_KEY, "k_f": "k_f", "k_u": "k_u", "k_const": "k_const", "k_linear": "k_linear"}
+    values = {keys[k]: float(v) for k, v in ov.items() if k in keys}
+    return replace(cfg, **config_changes(cfg, values)) if values else cfg
 
 
 def load_config_overrides(path: str | Path | None) -> dict[str, float]:
@@ -97,8 +98,8 @@ def load_config_overrides(path: str | Path | None) -> dict[str, float]:
     for k in ("k_f", "k_u", "k_const", "k_linear", "E"):
         if k in est:
             out[k] = float(est[k])
-    if "youngs_modulus" in est:  # the daemon config's name for E
-        out["E"] = float(est["youngs_modulus"])
+    if _E_KEY in est:
+        out["E"] = float(est[_E_KEY])
     mat = est.get("material", {})
     if isinstance(mat, dict) and "E" in mat:
         out["E"] = float(mat["E"])
@@ -184,35 +185,51 @@ def simulate_trajectory(
 
 
 def estimator_mesh(name: str, traj: SimTrajectory) -> Any:
-    """The estimator mesh: the preset fitted onto the reference surface seen by the camera."""
-    from bubble_rt.mesh import Mesh
+    """The estimator mesh (preset name or node count): fitted onto the reference surface seen
+    by the camera when the reference frames have depth."""
+    from bubble_rt.estimation.deformation import Reference
+    from bubble_rt.estimation.pipeline import fitted_mesh
 
-    template = Mesh.preset(name) if not str(name).isdigit() else Mesh.generate(int(name))
-    if traj.reference_frames and traj.reference_frames[0].depth is not None:
-        from bubble_rt.estimation.deformation import Reference
-        from bubble_rt.estimation.fitting import fit_mesh
+    reference = Reference.capture(traj.reference_frames)
+    return fitted_mesh(str(name), reference, traj.camera, fit=reference.depth is not None)
 
-        return fit_mesh(template, Reference.capture(traj.reference_frames), traj.camera)
-    return template
+
+def flow_settings(method: str = "default") -> Any:
+    """FlowSettings of a method name ("default": FlowSettings' own)."""
+    from bubble_rt.estimation.deformation import FlowSettings
+
+    return FlowSettings() if method == "default" else FlowSettings(method=method)
+
+
+def build_pipeline(
+    kind: str, mesh: Any, traj: SimTrajectory, config: Any, flow_method: str = "default"
+) -> Any:
+    """The estimation Pipeline of estimator ``kind`` on ``mesh`` (from ``estimator_mesh``) for
+    this trajectory's camera and reference frames."""
+    from bubble_rt.estimation.pipeline import Pipeline
+
+    return Pipeline.capture(
+        traj.reference_frames,
+        traj.camera,
+        mesh=mesh,
+        fit=False,
+        kind=kind,
+        config=config,
+        flow=flow_settings(flow_method),
+    )
 
 
 def build_estimator(
     kind: str, mesh: Any, traj: SimTrajectory, config: Any, flow_method: str = "default"
 ) -> Any:
-    """An estimator with ``.process(frame)`` for this trajectory's camera and reference."""
-    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
-    from bubble_rt.estimation.estimator import make_estimator
-
-    reference = Reference.capture(traj.reference_frames)
-    est = make_estimator(kind, mesh, config, camera=traj.camera, reference=reference)
-    if kind == "fem":
-        settings = FlowSettings() if flow_method == "default" else FlowSettings(method=flow_method)
-        est.attach(DeformationTracker(mesh, traj.camera, reference, settings))
-    return est
+    """An estimator with ``.process(frame)`` for this trajectory (its Pipeline)."""
+    return build_pipeline(kind, mesh, traj, config, flow_method)
 
 
 def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
     """Simulate one trajectory, run each estimator on every frame, score against the truth."""
+    from bubble_rt.estimation.registry import estimator_kind
+
     t0 = time.perf_counter()
     traj = simulate_trajectory(
         task.geometry,
@@ -220,13 +237,15 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
         task.n_frames,
         task.seed,
         n_reference=task.n_reference,
-        # the frictionless baseline always needs depth images, so render even for "oracle"
-        render=task.flow_method != "oracle" or any(e != "fem" for e in task.estimators),
+        # kinds that read the frames themselves (the frictionless baseline) need depth images,
+        # so render for them even with "oracle" tracking
+        render=task.flow_method != "oracle"
+        or not all(estimator_kind(e).tracked for e in task.estimators),
         physics=task.physics,
     )
     mesh = estimator_mesh(task.mesh, traj)
-    areas = lumped_areas(mesh.vertices, mesh.triangles)
-    normals = vertex_normals(mesh.vertices, mesh.triangles)
+    areas = mesh.lumped_areas()
+    normals = mesh.vertex_normals()
     interior = np.ones(mesh.n_nodes, bool)
     interior[mesh.boundary] = False
     gt_masks = [np.asarray(f.truth.contact_mask(mesh), dtype=bool) for f in traj.frames]
@@ -317,6 +336,7 @@ def evaluate_recording(
     n_reference: int = 5,
     force_threshold: float = 1.0,
     max_frames: int | None = None,
+    bag_options: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Net-force magnitude error and contact detection on a real recording with a wrench.
 
@@ -327,21 +347,15 @@ def evaluate_recording(
     when it marks any contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
     false-contact rate on untouched frames, per estimator.
     """
-    from bubble_rt.estimation.deformation import Reference
-    from bubble_rt.estimation.fitting import fit_mesh
     from bubble_rt.io.recordings import open_recording
-    from bubble_rt.mesh import Mesh
 
-    rec = open_recording(path)
+    rec = open_recording(path, **(bag_options or {}))  # bag_options: ROS 2 bags only
     frames = list(rec)
     if max_frames:
         frames = frames[:max_frames]
     if len(frames) <= n_reference:
         n_reference = max(1, len(frames) // 2)
     ref_frames = frames[:n_reference]
-    reference = Reference.capture(ref_frames)
-    template = Mesh.preset(mesh) if not str(mesh).isdigit() else Mesh.generate(int(mesh))
-    fitted = fit_mesh(template, reference, rec.camera)
     wrenches = [f.wrench for f in frames]
     if any(w is None for w in wrenches):
         raise ValueError(f"{path}: recording has frames without a wrench")
@@ -360,6 +374,10 @@ def evaluate_recording(
         "estimators": {},
     }
     traj = SimTrajectory(frames=frames, reference_frames=ref_frames, camera=rec.camera)
+    from bubble_rt.estimation.deformation import Reference
+    from bubble_rt.estimation.pipeline import fitted_mesh
+
+    fitted = fitted_mesh(str(mesh), Reference.capture(ref_frames), rec.camera)
     for name in estimators:
         est = build_estimator(name, fitted, traj, config)
         mags, det, ms = [], [], []

@@ -47,6 +47,7 @@ import numpy as np
 
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame, FrameError
+from bubble_rt.io import mcap_scan
 from bubble_rt.io.mcap_scan import McapFileError, ReadReport, scan
 from bubble_rt.io.protocol import pb
 from bubble_rt.io.recordings import FrameFault
@@ -171,7 +172,7 @@ def camera_from_info(msg: Any) -> Camera:
         cy=msg.cy,
         width=msg.width,
         height=msg.height,
-        distortion=tuple(msg.distortion) or (0.0,) * 5,  # type: ignore[arg-type]
+        distortion=tuple(msg.distortion) or (0.0,) * 5,
         pose=tuple(tuple(r) for r in np.asarray(msg.pose, dtype=np.float64).reshape(4, 4)),
     )
 
@@ -324,6 +325,14 @@ class Recorder:
     # ---------------------------------------------------------------- writer thread
     def _channel(self, topic: str, msg: Any) -> int:
         cid = self._channels.get(topic)
+        if cid is None and hasattr(msg, "schema_name"):  # pre-encoded (bubble_rt.io.foxglove)
+            sid = self._writer.register_schema(
+                name=msg.schema_name, encoding=msg.schema_encoding, data=msg.schema_data
+            )
+            cid = self._writer.register_channel(
+                topic=topic, message_encoding=msg.message_encoding, schema_id=sid
+            )
+            self._channels[topic] = cid
         if cid is None:
             from mcap.well_known import MessageEncoding
             from mcap_protobuf.schema import register_schema
@@ -580,3 +589,54 @@ class McapRecording:
         for topic, msg, _, _ in iter_messages(self.path):
             if topic == TOPIC_FORCE:
                 yield msg
+
+
+def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> ReadReport:
+    """Rewrite ``src`` as a finalised, indexed MCAP file ``dst`` from what is readable.
+
+    Keeps schemas, channels and every readable message (log and publish times, sequence);
+    returns the :class:`ReadReport` of reading ``src``.
+    """
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    report = ReadReport(str(src))
+    records = scan(src, report)  # refuses a non-MCAP source before dst is created
+    first = next(records, None)
+    fh = open_new_file(dst, overwrite=overwrite)
+    try:
+        writer = McapWriter(fh, compression=CompressionType.LZ4)
+        writer.start(profile="", library="bubble_rt recover")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        pending: dict[int, Any] = {}
+        seen_channels: set[int] = set()
+        for opcode, rec in _chain(first, records):
+            if opcode == mcap_scan.SCHEMA and rec.id not in schemas:
+                schemas[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
+            elif opcode == mcap_scan.CHANNEL and rec.id not in seen_channels:
+                seen_channels.add(rec.id)
+                pending[rec.id] = rec
+            elif opcode == mcap_scan.MESSAGE:
+                cid = channels.get(rec.channel_id)
+                if cid is None:
+                    ch = pending.get(rec.channel_id)
+                    if ch is None or (ch.schema_id and ch.schema_id not in schemas):
+                        report.messages_undecodable += 1
+                        continue
+                    cid = channels[rec.channel_id] = writer.register_channel(
+                        ch.topic, ch.message_encoding, schemas.get(ch.schema_id, 0), ch.metadata
+                    )
+                writer.add_message(
+                    cid, rec.log_time, rec.data, rec.publish_time, sequence=rec.sequence
+                )
+        writer.finish()
+    finally:
+        fh.close()
+    return report
+
+
+def _chain(first: Any, rest: Iterator[Any]) -> Iterator[Any]:
+    if first is not None:
+        yield first
+    yield from rest

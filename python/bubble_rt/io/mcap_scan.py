@@ -31,6 +31,8 @@ from typing import Any
 MAGIC = b"\x89MCAP0\r\n"
 
 _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+#: Record opcodes the scan yields (``scan`` gives (opcode, record) pairs).
+SCHEMA, CHANNEL, MESSAGE = _SCHEMA, _CHANNEL, _MESSAGE
 _STATISTICS, _DATA_END = 0x0B, 0x0F
 _KNOWN = set(range(0x01, 0x10))
 _FOOTER_SIZE = 1 + 8 + 20
@@ -347,56 +349,3 @@ def scan(path: str | Path, report: ReadReport | None = None) -> Iterator[tuple[i
             f"{report.messages_indexed - report.messages} of {report.messages_indexed} indexed "
             "messages not read"
         )
-
-
-def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> ReadReport:
-    """Rewrite ``src`` as a finalised, indexed MCAP file ``dst`` from what is readable.
-
-    Keeps schemas, channels and every readable message (log and publish times, sequence);
-    returns the :class:`ReadReport` of reading ``src``.
-    """
-    from mcap.writer import CompressionType
-    from mcap.writer import Writer as McapWriter
-
-    from bubble_rt.io.mcap import open_new_file
-
-    report = ReadReport(str(src))
-    records = scan(src, report)  # refuses a non-MCAP source before dst is created
-    first = next(records, None)
-    fh = open_new_file(dst, overwrite=overwrite)
-    try:
-        writer = McapWriter(fh, compression=CompressionType.LZ4)
-        writer.start(profile="", library="bubble_rt recover")
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        pending: dict[int, Any] = {}
-        seen_channels: set[int] = set()
-        for opcode, rec in _chain(first, records):
-            if opcode == _SCHEMA and rec.id not in schemas:
-                schemas[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
-            elif opcode == _CHANNEL and rec.id not in seen_channels:
-                seen_channels.add(rec.id)
-                pending[rec.id] = rec
-            elif opcode == _MESSAGE:
-                cid = channels.get(rec.channel_id)
-                if cid is None:
-                    ch = pending.get(rec.channel_id)
-                    if ch is None or (ch.schema_id and ch.schema_id not in schemas):
-                        report.messages_undecodable += 1
-                        continue
-                    cid = channels[rec.channel_id] = writer.register_channel(
-                        ch.topic, ch.message_encoding, schemas.get(ch.schema_id, 0), ch.metadata
-                    )
-                writer.add_message(
-                    cid, rec.log_time, rec.data, rec.publish_time, sequence=rec.sequence
-                )
-        writer.finish()
-    finally:
-        fh.close()
-    return report
-
-
-def _chain(first: Any, rest: Iterator[Any]) -> Iterator[Any]:
-    if first is not None:
-        yield first
-    yield from rest

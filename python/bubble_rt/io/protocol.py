@@ -93,7 +93,7 @@ def status_topic(sensor_id: str) -> bytes:
 
 
 def _packed(a: Any) -> list[float]:
-    return np.asarray(a, dtype=np.float64).ravel().tolist()  # type: ignore[no-any-return]
+    return np.asarray(a, dtype=np.float64).ravel().tolist()
 
 
 # ---------------------------------------------------------------------------------- mesh

@@ -54,28 +54,7 @@ from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame, FrameError
-
-#: The public implementation's mesh frame is the camera frame rotated 25 degrees about the
-#: camera's y axis with the rim plane at z = 0.054 m; the footprint centre sits at x = 0.04025
-#: m there (its 390-node reference mesh spans x -0.017..0.0975, y -0.04..0.04).
-PUNYO_TILT_DEG = 25.0
-PUNYO_RIM_Z = 0.054
-PUNYO_CENTRE_X = 0.04025
-
-
-def punyo_pose(
-    tilt_deg: float = PUNYO_TILT_DEG, rim_z: float = PUNYO_RIM_Z, centre_x: float = PUNYO_CENTRE_X
-) -> NDArray[np.float64]:
-    """Camera -> mesh transform (4 x 4) for the Punyo sensor of the public recordings.
-
-    p_mesh = R_y(tilt) p_cam - (centre_x, 0, rim_z): the rim in z = 0, footprint centred.
-    """
-    a = np.radians(tilt_deg)
-    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -np.array([centre_x, 0.0, rim_z])
-    return T
+from bubble_rt.io.punyo import punyo_pose
 
 
 def fit_intrinsics(points: NDArray, width: int, height: int) -> tuple[float, float, float, float]:
@@ -342,21 +321,37 @@ class PngRecording(Recording):
 
 
 def open_recording(
-    path: str | Path, pose: NDArray[np.float64] | None = None, centre_from_data: bool = True
+    path: str | Path,
+    pose: NDArray[np.float64] | None = None,
+    centre_from_data: bool = True,
+    **bag_options: Any,
 ) -> Recording:
-    """Open a recording folder, detecting its layout (Punyo .npy or PNG folder).
+    """Open a recording, detecting its layout (Punyo .npy, PNG folder or ROS 2 bag).
 
     ``pose`` (4 x 4 camera -> mesh) overrides the Punyo layout's default :func:`punyo_pose`;
-    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout).
+    ``centre_from_data`` refines its in-plane placement from frame 0 (Punyo layout, bags).
+    A ROS 2 bag (folder with metadata.yaml, .db3, or ros2-profile .mcap) opens as
+    :class:`bubble_rt.io.rosbag.BagRecording`; ``bag_options`` (``topics``, ``depth_unit``,
+    ...) go to it.
     """
     p = Path(path)
+    # ---- ROS 2 bags (bubble_rt.io.rosbag) ----
+    from bubble_rt.io.rosbag import BagRecording, is_rosbag
+
+    if is_rosbag(p):
+        opts = {k: v for k, v in bag_options.items() if v is not None}
+        return BagRecording(p, pose=pose, centre_from_data=centre_from_data, **opts)  # type: ignore[return-value]
+    # ---- end ROS 2 bags ----
     if not p.is_dir():
         raise FileNotFoundError(f"recording folder not found: {p}")
     if (p / "expand").is_dir():
         return PunyoRecording(p, pose=pose, centre_from_data=centre_from_data)
     if (p / "frames.csv").exists():
         return PngRecording(p)
-    raise FrameError(f"{p}: neither a Punyo recording (expand/) nor a PNG folder (frames.csv)")
+    raise FrameError(
+        f"{p}: neither a Punyo recording (expand/), a PNG folder (frames.csv) nor a ROS 2 bag "
+        "(metadata.yaml)"
+    )
 
 
 def write_png_recording(

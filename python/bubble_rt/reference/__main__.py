@@ -42,7 +42,7 @@ def _timing_main(argv: list[str] | None = None) -> int:
         cx = -0.02 + 0.04 * k / max(args.frames - 1, 1)
         c = np.exp(-((V[:, 0] - cx) ** 2 + V[:, 1] ** 2) / (2 * 0.008**2))
         c[mesh.boundary] = 0
-        return -amp * c[:, None] * normals  # type: ignore[no-any-return]
+        return -amp * c[:, None] * normals
 
     if args.solve_only:
         pb = GroupLassoProblem(V, T, mesh.boundary)

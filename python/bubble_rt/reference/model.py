@@ -105,7 +105,7 @@ def vertex_normals(vertices: ArrayLike, triangles: ArrayLike) -> NDArray[np.floa
         np.add.at(nsum, T[:, m], cr)
     norm = np.linalg.norm(nsum, axis=1)
     norm[norm == 0] = 1.0
-    return nsum / norm[:, None]  # type: ignore[no-any-return]
+    return nsum / norm[:, None]
 
 
 def external_forces(
@@ -115,13 +115,13 @@ def external_forces(
     U = np.asarray(U, dtype=np.float64)
     a = np.asarray(areas, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
-    return (K @ U.reshape(-1)).reshape(-1, 3) - float(dp) * a[:, None] * n  # type: ignore[no-any-return]
+    return (K @ U.reshape(-1)).reshape(-1, 3) - float(dp) * a[:, None] * n
 
 
 def normal_pressure(F: ArrayLike, areas: ArrayLike, normals: ArrayLike) -> NDArray[np.float64]:
     """Inward normal pressure p_i = -n_i . F_i / a_i (N,), Pa."""
     F = np.asarray(F, dtype=np.float64)
-    return -np.einsum("ij,ij->i", F, np.asarray(normals)) / np.asarray(areas)  # type: ignore[no-any-return]
+    return -np.einsum("ij,ij->i", F, np.asarray(normals)) / np.asarray(areas)
 
 
 def contact_mask(
@@ -134,7 +134,7 @@ def contact_mask(
     p = np.asarray(normal_pressure, dtype=np.float64)
     a = np.asarray(areas, dtype=np.float64)
     thresh = max(k_const, k_linear * float(a @ p) / float(a.sum()))
-    return p > thresh  # type: ignore[no-any-return]
+    return p > thresh
 
 
 def net_force(F: ArrayLike, boundary: ArrayLike) -> NDArray[np.float64]:
@@ -142,7 +142,7 @@ def net_force(F: ArrayLike, boundary: ArrayLike) -> NDArray[np.float64]:
     F = np.asarray(F, dtype=np.float64)
     keep = np.ones(len(F), dtype=bool)
     keep[np.asarray(boundary, dtype=np.int64)] = False
-    return F[keep].sum(axis=0)  # type: ignore[no-any-return]
+    return F[keep].sum(axis=0)
 
 
 def lasso_weights(n_nodes: int, boundary: ArrayLike, k_f: float) -> NDArray[np.float64]:

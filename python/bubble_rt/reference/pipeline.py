@@ -152,7 +152,7 @@ class ReferencePipeline:
             zc = np.maximum(self.camera.to_camera(pts)[:, 2], 1e-6)
             md = dd[:, 1:].mean(axis=1) / zc
             pts = pts[md <= md.mean() + s.outlier_std_ratio * md.std()]
-        return pts  # type: ignore[no-any-return]
+        return pts
 
     def _lift(self, depth: NDArray, query_uv: NDArray[np.float64]) -> NDArray[np.float64]:
         """S(query_uv): griddata over the projected filtered cloud plus the fixed rim nodes."""

@@ -21,6 +21,7 @@ from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
 from bubble_rt.sim import cache, effects
+from bubble_rt.sim import oracle as _oracle  # noqa: F401  (registers flow method "oracle")
 from bubble_rt.sim.scene import IndenterSpec, Scene, load_scene
 from bubble_rt.sim.trajectory import ReferenceSurface, trajectory_poses
 from bubble_rt.sim.truth import GroundTruth, SurfaceLocator

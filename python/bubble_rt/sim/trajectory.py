@@ -147,16 +147,16 @@ def _interp_keyframes(kfs: tuple[Keyframe, ...], t: float) -> Keyframe:
     if k0.at is not None:
         return Keyframe(
             t=t,
-            at=lerp(k0.at, k1.at),  # type: ignore[arg-type]
+            at=lerp(k0.at, k1.at),
             depth=(1 - s) * k0.depth + s * k1.depth,
-            approach=lerp(k0.approach, k1.approach),  # type: ignore[arg-type]
+            approach=lerp(k0.approach, k1.approach),
             spin_deg=(1 - s) * k0.spin_deg + s * k1.spin_deg,
         )
     r = Rotation.from_rotvec([k0.rotvec, k1.rotvec])
     from scipy.spatial.transform import Slerp
 
     rv = Slerp([0.0, 1.0], r)([s]).as_rotvec()[0]
-    return Keyframe(t=t, position=lerp(k0.position, k1.position), rotvec=tuple(rv))  # type: ignore[arg-type]
+    return Keyframe(t=t, position=lerp(k0.position, k1.position), rotvec=tuple(rv))
 
 
 def frame_times(spec: TrajectorySpec, frames: int, camera_hz: float) -> NDArray[np.float64]:

@@ -1,1 +1,0 @@
-#include "errors.h"

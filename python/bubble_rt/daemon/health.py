@@ -1,0 +1,132 @@
+"""The daemon's health: its state (starting, running, degraded, stopped) with the reason, and
+the Status message published periodically and answered to get_status."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any, Protocol
+
+import numpy as np
+
+from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon import faults
+from bubble_rt.io import protocol
+from bubble_rt.io.protocol import pb
+
+
+class Daemon(Protocol):
+    """The daemon state health reads (``bubble_rt.daemon.service.Daemon``)."""
+
+    config: DaemonConfig
+    sensor_id: str
+    processor: Any
+    recorder: Any
+    mesh_msg: Any
+    frames_published: int
+    errors: dict[str, int]
+    last_error: str
+    last_error_time: float
+    _camera_src: Any
+    _pressure_src: Any
+    _mid: Any
+    _collecting: list[Any]
+    _tare_requested: bool
+    _last_frame_time: float
+    _last_degraded: tuple[float, list[str]]
+    _started_at: float
+    _latencies: deque[float]
+    _publish_times: deque[float]
+    _recording_fault_counted: bool
+
+    def _error(self, kind: str, exc: BaseException | str) -> None: ...
+
+
+def frames_dropped(d: Daemon) -> int:
+    """Camera frames replaced before stage one took them, plus stage-one results replaced
+    before stage two took them."""
+    cam_drops = d._camera_src.output.dropped if d._camera_src is not None else 0
+    return cam_drops + d._mid.dropped
+
+
+def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
+    """(Status.State value, reason) of daemon ``d``."""
+    now = time.time() if now is None else now
+    cam = d._camera_src
+    stall = d.config.camera.stall_timeout_s
+    last = d._last_frame_time or d._started_at
+    cam_reason = ""
+    if now - last > stall:
+        cam_reason = f"camera stalled: no frame for {now - last:.1f} s"
+        if cam is not None and cam.stats.last_error:
+            cam_reason += f" ({cam.stats.last_error})"
+        if cam is not None and cam.finished.is_set():
+            cam_reason = "camera source ended"
+    if d.processor is None:
+        reason = f"capturing reference ({len(d._collecting)}/{d.config.reference.frames})"
+        if d.last_error and now - d.last_error_time < 5.0:
+            reason += f"; {d.last_error}"
+        if cam_reason:
+            reason += f"; {cam_reason}"
+        return pb.Status.STARTING, reason
+    if cam_reason:
+        return pb.Status.DEGRADED, cam_reason
+    rec = d.recorder
+    if rec is not None and rec.failed:
+        if not d._recording_fault_counted:
+            d._recording_fault_counted = True
+            d._error("recording", rec.failed)
+        return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
+    bad = faults.bad_frame_reason(cam, now)
+    if bad:
+        return pb.Status.DEGRADED, bad
+    if d.frames_published == 0:
+        reason = "reference captured, waiting for the first force frame"
+        if d.last_error:
+            reason += f"; {d.last_error}"
+        return pb.Status.STARTING, reason
+    if d._tare_requested:
+        return pb.Status.DEGRADED, "taring: capturing a new reference"
+    t_deg, reasons = d._last_degraded
+    if reasons and now - t_deg < 1.0:
+        return pb.Status.DEGRADED, "; ".join(reasons)
+    if d.last_error and now - d.last_error_time < 2.0:
+        return pb.Status.DEGRADED, d.last_error
+    return pb.Status.RUNNING, ""
+
+
+def status_message(d: Daemon, stopped: bool = False) -> Any:
+    """The Status message of daemon ``d`` now (``stopped``: the final STOPPED one)."""
+    now = time.time()
+    st, reason = (pb.Status.STOPPED, "shut down") if stopped else state(d, now)
+    recent = [t for t in list(d._publish_times) if now - t < 5.0]
+    rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 2 else 0.0
+    rec = d.recorder
+    recording, recording_error, recording_dropped = faults.recording_state(rec)
+    msg = pb.Status(
+        protocol_version=protocol.PROTOCOL_VERSION,
+        sensor_id=d.sensor_id,
+        state=st,
+        reason=reason,
+        time_ns=time.time_ns(),
+        frame_rate_hz=rate,
+        frames_published=d.frames_published,
+        frames_dropped=frames_dropped(d),
+        recording=recording,
+        recording_path=str(rec.path) if rec is not None else "",
+        recording_error=recording_error,
+        recording_dropped=recording_dropped,
+        mesh_id=d.mesh_msg.mesh_id if d.mesh_msg is not None else "",
+        uptime_s=now - d._started_at,
+    )
+    lat = np.asarray(list(d._latencies)[-300:])
+    if lat.size:
+        p50, p90, p99 = np.percentile(lat, [50, 90, 99])
+        msg.latency.p50_ms, msg.latency.p90_ms = float(p50), float(p90)
+        msg.latency.p99_ms, msg.latency.max_ms = float(p99), float(lat.max())
+    srcs = [d._camera_src] + ([d._pressure_src] if d._pressure_src else [])
+    for s in srcs:
+        if s is not None:
+            faults.add_source_stats(msg, s.stats, now)
+    faults.add_daemon_stats(msg, dict(d.errors), d.last_error)
+    return msg

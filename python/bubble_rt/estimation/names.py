@@ -1,0 +1,20 @@
+"""Names the estimation path is configured by, in a module that imports nothing, so that the
+config loader, the command line (``--help``) and the simulator can use them cheaply."""
+
+from __future__ import annotations
+
+#: Optical-flow methods of the deformation tracker (``FlowSettings.method``).
+IMAGE_FLOW_METHODS: tuple[str, ...] = (
+    "dis_ultrafast",
+    "dis_fast",
+    "dis_medium",
+    "farneback",
+    "farneback_heavy",
+)
+#: Ground-truth displacements instead of images: the simulator provides this tracker.
+ORACLE_FLOW_METHOD = "oracle"
+#: Every flow method a config may name.
+FLOW_METHODS: tuple[str, ...] = IMAGE_FLOW_METHODS + (ORACLE_FLOW_METHOD,)
+#: The default: from bench/deformation_bench.py, the fastest setting whose RMS flow error on the
+#: synthetic warp is <= 0.1 px (0.068 px): DIS ultrafast refined down to pyramid level 1.
+DEFAULT_FLOW_METHOD = "dis_ultrafast"

@@ -1,0 +1,158 @@
+"""The real-time pipeline, wired in one place: capture -> reference -> fitted mesh -> deformation
+tracker -> estimator.
+
+``Pipeline.process(frame)`` runs it all; the daemon calls the two stages itself,
+``deform(frame)`` (optical flow + lifting -> ``Deformation``) and ``solve(frame, deformation)``
+(solve + post -> ``Estimate``), so that the flow of frame k+1 overlaps the solve of frame k.
+Estimator kinds come from :mod:`bubble_rt.estimation.registry`, trackers from
+:func:`bubble_rt.estimation.deformation.make_tracker` (the simulator registers "oracle").
+The paper-faithful reference pipeline (:mod:`bubble_rt.reference`) is separate on purpose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from bubble_rt.camera import Camera
+from bubble_rt.estimation.deformation import (
+    Deformation,
+    FlowSettings,
+    Reference,
+    Tracker,
+    make_tracker,
+)
+from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
+from bubble_rt.estimation.registry import EstimatorKind, estimator_kind
+from bubble_rt.estimation.types import Estimate
+from bubble_rt.frames import Frame
+from bubble_rt.mesh import Mesh
+
+
+class Pipeline:
+    """One sensor's estimation path.
+
+    Args:
+        mesh: the estimator mesh (fitted to the reference surface, mesh frame).
+        camera: camera model (pose camera -> mesh frame).
+        reference: the untouched state (``Reference.capture``).
+        kind: registered estimator kind ("fem", "frictionless", ...).
+        config: EstimatorConfig (default: the paper's values).
+        flow: FlowSettings of the deformation tracker (tracked kinds only).
+
+    Attributes:
+        kind: the EstimatorKind; ``params`` lists what ``reconfigure`` accepts.
+        estimator: the estimator object; tracker: the deformation tracker (None when the kind
+        reads frames itself).
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        reference: Reference,
+        *,
+        kind: str = "fem",
+        config: EstimatorConfig | None = None,
+        flow: FlowSettings | None = None,
+    ) -> None:
+        self.kind: EstimatorKind = estimator_kind(kind)
+        self.mesh = mesh
+        self.camera = camera
+        self.config = config or EstimatorConfig()
+        self.flow = flow or FlowSettings()
+        self.tracker: Tracker | None = None
+        self.reference = reference
+        self.estimator: Any = self._build_estimator()
+        self._build_tracker()
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def capture(
+        cls,
+        frames: Sequence[Frame] | Frame,
+        camera: Camera,
+        *,
+        mesh: Mesh | str = "medium",
+        fit: bool = True,
+        kind: str = "fem",
+        config: EstimatorConfig | None = None,
+        flow: FlowSettings | None = None,
+    ) -> Pipeline:
+        """Capture the reference from untouched ``frames``, take the mesh (a Mesh, or a preset
+        name, node count or file: ``Mesh.from_spec``), fit it onto the reference surface when
+        ``fit``, and build the pipeline."""
+        reference = Reference.capture(frames)
+        fitted = fitted_mesh(mesh, reference, camera, fit=fit)
+        return cls(fitted, camera, reference, kind=kind, config=config, flow=flow)
+
+    def _build_estimator(self) -> Any:
+        return self.kind.build(self.mesh, self.config, self.camera, self.reference)
+
+    def _build_tracker(self) -> None:
+        if self.kind.tracked:
+            self.tracker = make_tracker(self.mesh, self.camera, self.reference, self.flow)
+
+    # ---------------------------------------------------------------- per frame
+    def deform(self, frame: Frame) -> Deformation | None:
+        """Stage one: the frame's node displacements (None when the kind reads frames itself)."""
+        return self.tracker.track(frame) if self.tracker is not None else None
+
+    def solve(self, frame: Frame, deformation: Deformation | None) -> Estimate:
+        """Stage two: forces and contact from stage one's ``deformation`` of ``frame``."""
+        if deformation is None:
+            est: Estimate = self.estimator.process(frame)
+            return est
+        est = self.estimator.estimate(deformation.U, deformation.dp)
+        timings = dict(deformation.timings_ms or {})
+        timings.update(est.timings_ms or {})
+        return dataclasses.replace(
+            est, timings_ms=timings, valid_node_fraction=float(deformation.valid_fraction)
+        )
+
+    def process(self, frame: Frame) -> Estimate:
+        """Both stages on one frame."""
+        return self.solve(frame, self.deform(frame))
+
+    # ---------------------------------------------------------------- changes
+    def set_reference(self, reference: Reference) -> None:
+        """Measure against a new untouched state (tare); the mesh stays."""
+        self.reference = reference
+        if self.kind.uses_reference:
+            self.estimator = self._build_estimator()
+        self._build_tracker()
+
+    @property
+    def params(self) -> tuple[str, ...]:
+        """The ``[estimator]`` keys ``reconfigure`` accepts for this kind."""
+        return self.kind.params
+
+    def reconfigure(self, values: Mapping[str, float]) -> None:
+        """Change ``[estimator]`` parameters (k_f, k_u, youngs_modulus, k_const, k_linear) between
+        frames. ValueError names a parameter this kind does not have; nothing changes then."""
+        bad = [k for k in values if k not in self.kind.params]
+        if bad:
+            raise ValueError(
+                f"the {self.kind.name!r} estimator has no parameter {', '.join(bad)} "
+                f"(it has {', '.join(self.kind.params)})"
+            )
+        changes = config_changes(self.config, values)
+        self.estimator.reconfigure(**changes)
+        self.config = dataclasses.replace(self.config, **changes)
+
+
+def fitted_mesh(
+    mesh: Mesh | str, reference: Reference, camera: Camera, *, fit: bool = True
+) -> Mesh:
+    """The estimator mesh: ``mesh`` (a Mesh, or a preset name, node count or file:
+    ``Mesh.from_spec``), lifted onto the reference surface the camera sees when ``fit``."""
+    template = mesh if isinstance(mesh, Mesh) else Mesh.from_spec(mesh)
+    if not fit:
+        return template
+    from bubble_rt.estimation.fitting import fit_mesh
+
+    return fit_mesh(template, reference, camera)
+
+
+__all__ = ["Pipeline", "fitted_mesh"]

@@ -1,0 +1,38 @@
+"""Types shared by the estimators (the FEM estimator and the frictionless baseline), so that
+neither imports the other."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from bubble_rt.estimation.solver import SolverInfo
+
+
+@dataclass
+class Estimate:
+    """One frame's estimate (all arrays over the N mesh nodes, mesh frame).
+
+    Attributes:
+        node_forces: N x 3 force the object applies on each node (N).
+        contact_pressure: N x 3 node_forces / lumped area (Pa).
+        normal_pressure: (N,) -n . contact_pressure (Pa, inward positive).
+        contact: (N,) bool contact mask.
+        net_force: (3,) sum of node_forces over non-rim nodes (N).
+        displacements: N x 3 corrected displacements U + dU (m), zero on the rim.
+        info: SolverInfo of the solve.
+        timings_ms: stage -> milliseconds ("solve", "post"; "flow", "lift" from process()).
+        valid_node_fraction: fraction of nodes the deformation stage measured (1.0 for U given).
+    """
+
+    node_forces: NDArray[np.float64]
+    contact_pressure: NDArray[np.float64]
+    normal_pressure: NDArray[np.float64]
+    contact: NDArray[np.bool_]
+    net_force: NDArray[np.float64]
+    displacements: NDArray[np.float64]
+    info: SolverInfo
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    valid_node_fraction: float = 1.0

@@ -1,0 +1,399 @@
+"""Foxglove out: the force field as a 3D scene, plots, the image and the status.
+
+``bubble-rt serve --foxglove [ADDR]`` (default ``ws://127.0.0.1:8765``) serves these channels
+over the Foxglove WebSocket protocol with the ``foxglove-sdk`` package, beside the ZeroMQ
+stream; with ``--record`` the same channels also go into the MCAP file, so a recording opened
+in Foxglove shows the same. Off by default.
+
+==============================  ==========================  =====================================
+topic                           schema (encoding)           content
+==============================  ==========================  =====================================
+/bubble_rt/foxglove/scene       foxglove.SceneUpdate (pb)   entity ``membrane``: mesh at its
+                                                            measured shape, vertices coloured by
+                                                            normal contact pressure; ``forces``:
+                                                            node force arrows; ``contact``:
+                                                            contact nodes and patch labels
+/bubble_rt/foxglove/net_force   bubble_rt.NetForce (json)   estimated net force x, y, z,
+                                                            magnitude (N, sensor frame)
+/bubble_rt/foxglove/true_force  bubble_rt.NetForce (json)   the simulator's true net force (sim
+                                                            scenes only)
+/bubble_rt/foxglove/image       foxglove.CompressedImage    colour image, JPEG, at most
+                                (pb)                        ``image_hz``
+/bubble_rt/foxglove/status      bubble_rt.Status (json)     state, reason, rate, latency
+==============================  ==========================  =====================================
+
+Everything is in the frame ``bubble_rt_sensor`` (the mesh frame: rim plane z = 0, dome
+towards +z). Scene conventions:
+
+* colour: normal contact pressure (inward positive) mapped linearly from 0 (grey-blue) over
+  yellow (half) to ``pressure_max_pa`` (default 5 kPa, red); above it is clamped to red.
+* arrows: one per contact node (``arrows="all"``: every node off the rim, whose forces are
+  its support, not contact) whose force exceeds ``min_arrow_n`` (0.01 N), drawn as the force
+  acting on the membrane: the tip at the node, the arrow along the force, its length
+  ``arrow_scale`` x |f| (default 0.05 m per N, i.e. 5 mm per 0.1 N).
+* contact: every contact node as a yellow 2 mm sphere; each contact patch (connected contact
+  nodes) a text at its centroid, ``patch k: |F| N``.
+
+``layouts/bubble_rt.foxglove.json`` in the repository is a Foxglove layout (3D, image, plots,
+status) for these topics.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlparse
+
+import numpy as np
+from numpy.typing import NDArray
+
+FRAME_ID = "bubble_rt_sensor"
+TOPIC_SCENE = "/bubble_rt/foxglove/scene"
+TOPIC_NET_FORCE = "/bubble_rt/foxglove/net_force"
+TOPIC_TRUE_FORCE = "/bubble_rt/foxglove/true_force"
+TOPIC_IMAGE = "/bubble_rt/foxglove/image"
+TOPIC_STATUS = "/bubble_rt/foxglove/status"
+DEFAULT_ADDRESS = "ws://127.0.0.1:8765"
+
+ARROW_SCALE_M_PER_N = 0.05
+MIN_ARROW_N = 0.01
+PRESSURE_MAX_PA = 5000.0
+
+NET_FORCE_SCHEMA = {
+    "title": "bubble_rt.NetForce",
+    "type": "object",
+    "properties": {
+        "timestamp": {
+            "type": "object",
+            "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+        },
+        "frame_index": {"type": "integer"},
+        "x": {"type": "number"},
+        "y": {"type": "number"},
+        "z": {"type": "number"},
+        "magnitude": {"type": "number"},
+    },
+}
+STATUS_SCHEMA = {
+    "title": "bubble_rt.Status",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "object"},
+        "state": {"type": "string"},
+        "reason": {"type": "string"},
+        "frame_rate_hz": {"type": "number"},
+        "frames_published": {"type": "integer"},
+        "frames_dropped": {"type": "integer"},
+        "latency_p50_ms": {"type": "number"},
+        "latency_p99_ms": {"type": "number"},
+    },
+}
+
+
+@dataclass
+class Encoded:
+    """One serialised message with its schema: what both the WebSocket channel and the MCAP
+    recorder need (``SerializeToString`` lets :class:`bubble_rt.io.mcap.Recorder` take it)."""
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+    message_encoding: str
+    data: bytes
+    log_time_ns: int
+
+    def SerializeToString(self) -> bytes:  # noqa: N802 (protobuf-like)
+        return self.data
+
+
+def _proto(topic: str, msg: Any, t_ns: int) -> Encoded:
+    s = type(msg).get_schema()
+    return Encoded(topic, s.name, s.encoding, bytes(s.data), "protobuf", msg.encode(), t_ns)
+
+
+def _json(topic: str, schema: dict[str, Any], payload: dict[str, Any], t_ns: int) -> Encoded:
+    return Encoded(
+        topic,
+        schema["title"],
+        "jsonschema",
+        json.dumps(schema).encode(),
+        "json",
+        json.dumps(payload).encode(),
+        t_ns,
+    )
+
+
+def _stamp(t_ns: int) -> dict[str, int]:
+    return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+
+
+def pressure_colors(p: NDArray, p_max: float = PRESSURE_MAX_PA) -> NDArray[np.float64]:
+    """RGBA (n x 4, 0..1) of normal pressures: 0 -> grey-blue, p_max and above -> red."""
+    s = np.clip(np.nan_to_num(np.asarray(p, dtype=np.float64)) / p_max, 0.0, 1.0)[:, None]
+    lo = np.array([0.55, 0.62, 0.75, 1.0])
+    mid = np.array([1.0, 0.85, 0.2, 1.0])
+    hi = np.array([0.85, 0.1, 0.1, 1.0])
+    a = np.clip(2 * s, 0, 1)
+    b = np.clip(2 * s - 1, 0, 1)
+    return np.where(s < 0.5, lo + (mid - lo) * a, mid + (hi - mid) * b)
+
+
+def _quat_x_to(d: NDArray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) rotating +x onto unit vector d."""
+    x = np.array([1.0, 0.0, 0.0])
+    c = float(np.dot(x, d))
+    if c < -0.999999:
+        return 0.0, 0.0, 1.0, 0.0
+    axis = np.cross(x, d)
+    q = np.array([axis[0], axis[1], axis[2], 1.0 + c])
+    q /= np.linalg.norm(q)
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
+
+
+def scene_update(
+    vertices: NDArray,
+    triangles: NDArray,
+    node_forces: NDArray,
+    normal_pressure: NDArray,
+    contact: NDArray,
+    patches: list[Any] | None = None,
+    *,
+    boundary: NDArray | None = None,
+    arrows_for: str = "contact",
+    t_ns: int = 0,
+    arrow_scale: float = ARROW_SCALE_M_PER_N,
+    min_arrow_n: float = MIN_ARROW_N,
+    pressure_max_pa: float = PRESSURE_MAX_PA,
+) -> Any:
+    """The foxglove.SceneUpdate for one force frame (see the module docstring)."""
+    import foxglove.messages as fm
+
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    F = np.asarray(node_forces, dtype=np.float64).reshape(-1, 3)
+    C = np.asarray(contact, dtype=bool).reshape(-1)
+    stamp = fm.Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000))
+    ident = fm.Pose(
+        position=fm.Vector3(x=0, y=0, z=0), orientation=fm.Quaternion(x=0, y=0, z=0, w=1)
+    )
+    cols = pressure_colors(normal_pressure, pressure_max_pa)
+    tri = fm.TriangleListPrimitive(
+        pose=ident,
+        points=[fm.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in V],
+        colors=[fm.Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0) for c in cols],
+        indices=[int(i) for i in np.asarray(triangles, dtype=np.int64).reshape(-1)],
+    )
+    membrane = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="membrane", triangles=[tri])
+    arrows = []
+    mags = np.linalg.norm(F, axis=1)
+    if arrows_for == "contact":
+        mags[~C] = 0.0
+    if boundary is not None:
+        mags[np.asarray(boundary, dtype=np.int64)] = 0.0  # the rim's support, not contact
+    red = fm.Color(r=0.9, g=0.15, b=0.1, a=1.0)
+    for i in np.flatnonzero(mags > min_arrow_n):
+        d = F[i] / mags[i]
+        length = float(mags[i] * arrow_scale)
+        tail = V[i] - d * length
+        qx, qy, qz, qw = _quat_x_to(d)
+        head = min(0.3 * length, 0.004)
+        arrows.append(
+            fm.ArrowPrimitive(
+                pose=fm.Pose(
+                    position=fm.Vector3(x=float(tail[0]), y=float(tail[1]), z=float(tail[2])),
+                    orientation=fm.Quaternion(x=qx, y=qy, z=qz, w=qw),
+                ),
+                shaft_length=max(length - head, 0.0),
+                shaft_diameter=0.0008,
+                head_length=head,
+                head_diameter=0.002,
+                color=red,
+            )
+        )
+    forces = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="forces", arrows=arrows)
+    yellow = fm.Color(r=1.0, g=0.9, b=0.1, a=1.0)
+    spheres = [
+        fm.SpherePrimitive(
+            pose=fm.Pose(
+                position=fm.Vector3(x=float(V[i, 0]), y=float(V[i, 1]), z=float(V[i, 2])),
+                orientation=fm.Quaternion(x=0, y=0, z=0, w=1),
+            ),
+            size=fm.Vector3(x=0.002, y=0.002, z=0.002),
+            color=yellow,
+        )
+        for i in np.flatnonzero(C)
+    ]
+    texts = []
+    for k, p in enumerate(patches or []):
+        c = np.asarray(p.centroid, dtype=np.float64)
+        texts.append(
+            fm.TextPrimitive(
+                pose=fm.Pose(
+                    position=fm.Vector3(x=float(c[0]), y=float(c[1]), z=float(c[2]) + 0.006),
+                    orientation=fm.Quaternion(x=0, y=0, z=0, w=1),
+                ),
+                billboard=True,
+                font_size=14.0,
+                scale_invariant=True,
+                color=yellow,
+                text=f"patch {k}: {float(np.linalg.norm(p.force)):.2f} N",
+            )
+        )
+    patches_e = fm.SceneEntity(
+        timestamp=stamp, frame_id=FRAME_ID, id="contact", spheres=spheres, texts=texts
+    )
+    return fm.SceneUpdate(entities=[membrane, forces, patches_e])
+
+
+def net_force_payload(f: NDArray, t_ns: int, frame_index: int = 0) -> dict[str, Any]:
+    v = np.asarray(f, dtype=np.float64).reshape(3)
+    return {
+        "timestamp": _stamp(t_ns),
+        "frame_index": int(frame_index),
+        "x": float(v[0]),
+        "y": float(v[1]),
+        "z": float(v[2]),
+        "magnitude": float(np.linalg.norm(v)),
+    }
+
+
+def jpeg_image(rgb: NDArray, t_ns: int, quality: int = 80) -> Any:
+    """A foxglove.CompressedImage (JPEG) of an RGB uint8 image."""
+    import cv2
+    import foxglove.messages as fm
+
+    ok, buf = cv2.imencode(
+        ".jpg", np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    )
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return fm.CompressedImage(
+        timestamp=fm.Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000)),
+        frame_id=FRAME_ID,
+        data=buf.tobytes(),
+        format="jpeg",
+    )
+
+
+class SceneBuilder:
+    """Force frames (``bubble_rt.v1`` ForceFrame + Mesh messages) -> Foxglove messages."""
+
+    def __init__(
+        self,
+        arrow_scale: float = ARROW_SCALE_M_PER_N,
+        pressure_max_pa: float = PRESSURE_MAX_PA,
+        image_hz: float = 10.0,
+        arrows_for: str = "contact",
+    ) -> None:
+        if arrows_for not in ("contact", "all"):
+            raise ValueError(f"arrows_for must be 'contact' or 'all', got {arrows_for!r}")
+        self.arrows_for = arrows_for
+        self.arrow_scale = arrow_scale
+        self.pressure_max_pa = pressure_max_pa
+        self.image_period = 1.0 / image_hz if image_hz > 0 else float("inf")
+        self._last_image = -float("inf")
+        self._mesh_id = ""
+        self._mesh: Any = None
+
+    def frame(
+        self, force_msg: Any, mesh_msg: Any, frame: Any = None, displacements: Any = None
+    ) -> list[Encoded]:
+        """Scene, net force, true force (sim frames) and image (rate-limited) of one frame;
+        ``displacements`` (N x 3, m) draw the mesh at its measured shape."""
+        from bubble_rt.io import protocol
+
+        if mesh_msg is not None and mesh_msg.mesh_id != self._mesh_id:
+            self._mesh = protocol.decode_mesh(mesh_msg)
+            self._mesh_id = mesh_msg.mesh_id
+        if self._mesh is None:
+            return []
+        d = protocol.decode_force_frame(force_msg)
+        t_ns = int(d.capture_time_ns)
+        verts = np.asarray(self._mesh.vertices, dtype=np.float64)
+        if displacements is not None and np.shape(displacements) == verts.shape:
+            verts = verts + np.nan_to_num(np.asarray(displacements, dtype=np.float64))
+        scene = scene_update(
+            verts,
+            self._mesh.triangles,
+            d.node_forces,
+            d.normal_pressure,
+            d.contact,
+            d.patches,
+            boundary=self._mesh.boundary,
+            arrows_for=self.arrows_for,
+            t_ns=t_ns,
+            arrow_scale=self.arrow_scale,
+            pressure_max_pa=self.pressure_max_pa,
+        )
+        out = [
+            _proto(TOPIC_SCENE, scene, t_ns),
+            _json(
+                TOPIC_NET_FORCE,
+                NET_FORCE_SCHEMA,
+                net_force_payload(d.net_force, t_ns, d.frame_index),
+                t_ns,
+            ),
+        ]
+        truth = getattr(frame, "truth", None) if frame is not None else None
+        if truth is not None and getattr(truth, "net_force", None) is not None:
+            out.append(
+                _json(
+                    TOPIC_TRUE_FORCE,
+                    NET_FORCE_SCHEMA,
+                    net_force_payload(truth.net_force, t_ns, d.frame_index),
+                    t_ns,
+                )
+            )
+        rgb = getattr(frame, "rgb", None) if frame is not None else None
+        now = time.monotonic()
+        if rgb is not None and now - self._last_image >= self.image_period:
+            self._last_image = now
+            out.append(_proto(TOPIC_IMAGE, jpeg_image(rgb, t_ns), t_ns))
+        return out
+
+    @staticmethod
+    def status(msg: Any) -> Encoded:
+        from bubble_rt.io.protocol import pb
+
+        t_ns = int(msg.time_ns)
+        payload = {
+            "timestamp": _stamp(t_ns),
+            "state": pb.Status.State.Name(msg.state),
+            "reason": msg.reason,
+            "frame_rate_hz": float(msg.frame_rate_hz),
+            "frames_published": int(msg.frames_published),
+            "frames_dropped": int(msg.frames_dropped),
+            "latency_p50_ms": float(msg.latency.p50_ms),
+            "latency_p99_ms": float(msg.latency.p99_ms),
+        }
+        return _json(TOPIC_STATUS, STATUS_SCHEMA, payload, t_ns)
+
+
+def channel_specs() -> list[Encoded]:
+    """Every channel (topic and schema, empty data) so that clients see them all at once."""
+    import foxglove.messages as fm
+
+    out = []
+    for topic, cls in ((TOPIC_SCENE, fm.SceneUpdate), (TOPIC_IMAGE, fm.CompressedImage)):
+        s = cls.get_schema()
+        out.append(Encoded(topic, s.name, s.encoding, bytes(s.data), "protobuf", b"", 0))
+    for topic, schema in (
+        (TOPIC_NET_FORCE, NET_FORCE_SCHEMA),
+        (TOPIC_TRUE_FORCE, NET_FORCE_SCHEMA),
+        (TOPIC_STATUS, STATUS_SCHEMA),
+    ):
+        out.append(_json(topic, schema, {}, 0))
+    return out
+
+
+def parse_address(address: str | None) -> tuple[str, int]:
+    """(host, port) of ``ws://HOST:PORT`` (or ``HOST:PORT``, or ``:PORT``)."""
+    a = address or DEFAULT_ADDRESS
+    if "//" not in a:
+        a = "ws://" + a
+    u = urlparse(a)
+    if u.scheme not in ("ws", ""):
+        raise ValueError(f"foxglove address {address!r}: only ws://HOST:PORT is served")
+    return u.hostname or "127.0.0.1", 8765 if u.port is None else int(u.port)
