@@ -116,7 +116,7 @@ def test_set_params_refuses_a_parameter_the_running_estimator_lacks():
 def test_set_params_rejects_bad_values(daemon):
     d, _ = daemon
     with Controller(d.control_address) as c:
-        with pytest.raises(ControlError, match="k_u must be > 0"):
+        with pytest.raises(ControlError, match=r"k_u must be in \[100, 1e\+10\] 1/m\^2, got -3.0"):
             c.set_params(k_u=-3.0)
         with pytest.raises(ControlError, match="k_f must be finite"):
             c.set_params(k_f=float("nan"))
@@ -345,7 +345,9 @@ def test_record_start_stop_via_control(daemon, tmp_path):
 
 
 def test_validate_params_names_the_parameter():
-    assert validate_params({"k_const": -1.0}) == "set_params: k_const must be >= 0, got -1.0"
+    assert validate_params({"k_const": -1.0}) == (
+        "set_params: k_const must be in [0, 1e+06] Pa, got -1.0"
+    )
     assert validate_params({"k_linear": 0.0}) is None
 
 

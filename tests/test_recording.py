@@ -21,6 +21,7 @@ from bubble_rt.io.mcap import (
     TOPIC_RGB,
     McapRecording,
     Recorder,
+    RecordingWarning,
     iter_messages,
     write_recording,
 )
@@ -66,7 +67,8 @@ def test_truncated_file_reads_up_to_last_chunk(tmp_path):
     data = p.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    got = list(McapRecording(cut))
+    with pytest.warns(RecordingWarning, match="not closed"):
+        got = list(McapRecording(cut))
     assert 3 <= len(got) < 20
     assert [f.index for f in got] == list(range(len(got)))
 
@@ -99,7 +101,8 @@ def test_recording_survives_a_killed_process(tmp_path):
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-    got = list(McapRecording(p))
+    with pytest.warns(RecordingWarning, match="not closed"):
+        got = list(McapRecording(p))
     assert len(got) >= 10
     np.testing.assert_array_equal(got[9].rgb, make_frame(9).rgb)
 

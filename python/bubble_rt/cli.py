@@ -14,6 +14,7 @@ COMMANDS = [
     "serve",
     "echo",
     "record",
+    "recover",
     "config",
     "estimate",
     "simulate",

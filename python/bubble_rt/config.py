@@ -45,6 +45,49 @@ def _non_negative(obj: Any, *names: str) -> None:
         _check(math.isfinite(v) and v >= 0, n, f"must be >= 0, got {v!r}")
 
 
+@dataclass(frozen=True)
+class ParamRange:
+    """Accepted values of one numeric parameter: finite and within [lo, hi] (units for messages)."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+
+    def problem(self, value: Any) -> str | None:
+        """None when ``value`` is acceptable, else what is wrong with it (no key name)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"must be a number, got {value!r}"
+        v = float(value)
+        if not math.isfinite(v):
+            return f"must be finite, got {v!r}"
+        if not self.lo <= v <= self.hi:
+            unit = f" {self.unit}" if self.unit else ""
+            return f"must be in [{self.lo:g}, {self.hi:g}]{unit}, got {v!r}"
+        return None
+
+
+#: Ranges of the estimator parameters, the one place both configuration loading
+#: (``[estimator]``) and the live ``set_params`` control request check them. Values outside
+#: these ranges make the solve singular or non-finite (e.g. k_u = 5e-324, E = 1e308).
+ESTIMATOR_RANGES: dict[str, ParamRange] = {
+    "k_f": ParamRange(1e-4, 1e3, "1/N"),
+    "k_u": ParamRange(1e2, 1e10, "1/m^2"),
+    "youngs_modulus": ParamRange(1e4, 1e8, "Pa"),
+    "poisson": ParamRange(0.0, 0.5),
+    "thickness": ParamRange(1e-5, 1e-2, "m"),
+    "k_const": ParamRange(0.0, 1e6, "Pa"),
+    "k_linear": ParamRange(0.0, 1e3),
+}
+
+
+def param_problem(name: str, value: Any) -> str | None:
+    """None if ``value`` is acceptable for estimator parameter ``name``, else the reason."""
+    rng = ESTIMATOR_RANGES.get(name)
+    if rng is None:
+        return f"unknown parameter; expected one of {', '.join(ESTIMATOR_RANGES)}"
+    return rng.problem(value)
+
+
 CAMERA_KINDS = ("sim", "replay", "realsense")
 PRESSURE_KINDS = ("camera", "serial", "constant")
 
@@ -188,9 +231,9 @@ class EstimatorSection:
                 "mesh",
                 f"{self.mesh!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file",
             )
-        _positive(self, "k_f", "k_u", "youngs_modulus", "thickness")
-        _check(0 <= self.poisson < 0.5 + 1e-12, "poisson", "must be in [0, 0.5]")
-        _non_negative(self, "k_const", "k_linear")
+        for name in ESTIMATOR_RANGES:
+            err = param_problem(name, getattr(self, name))
+            _check(err is None, name, err or "")
 
 
 @dataclass(frozen=True)
@@ -263,6 +306,8 @@ class RecordingConfig:
     compression: str = "lz4"
     #: Messages waiting for the writer thread; beyond it frames are dropped from the file.
     queue: int = 64
+    #: Replace an existing file at ``path`` (otherwise recording to an existing file is refused).
+    overwrite: bool = False
 
     def __post_init__(self) -> None:
         _check(

@@ -210,3 +210,19 @@ class Frame:
         p = pressure_to_pa(pressure, pressure_unit)
         frame = cls(rgb=rgb, depth=metres, pressure_pa=p, **fields)
         return frame.validate(camera)
+
+
+@dataclass(frozen=True)
+class FrameFault:
+    """A frame of a recording that could not be read; replay skips, counts and names it.
+
+    ``where`` names the recording and the frame (or the file at fault), ``reason`` says what
+    is wrong (truncated file, wrong shape or dtype, no valid depth, NaN pressure, ...).
+    """
+
+    index: int
+    where: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.reason}"

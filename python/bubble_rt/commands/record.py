@@ -18,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, default=0.0, help="seconds to record (0: until Ctrl-C)"
     )
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing file")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,7 +39,7 @@ def _record(args: argparse.Namespace, stop: threading.Event) -> int:
     path = str(Path(args.output).resolve())
     with Controller(args.control, timeout_s=5.0) as ctl:
         try:
-            written = ctl.record_start(path)
+            written = ctl.record_start(path, overwrite=getattr(args, "overwrite", False))
         except (ControlError, TimeoutError) as exc:
             print(f"bubble-rt record: {exc}", file=sys.stderr)
             return 1

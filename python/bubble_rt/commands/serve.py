@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pace", choices=["realtime", "fast"], help="sim/replay pacing")
     parser.add_argument("--record", metavar="FILE", help="record inputs and outputs from start")
     parser.add_argument(
+        "--overwrite", action="store_true", help="with --record: replace an existing file"
+    )
+    parser.add_argument(
         "--echo", action="store_true", help="also print received frames (in-process subscriber)"
     )
     parser.add_argument(
@@ -61,6 +64,7 @@ def build_config(args: argparse.Namespace):
             "estimator.kind": args.estimator,
             "camera.pace": args.pace,
             "recording.path": args.record,
+            "recording.overwrite": True if args.overwrite else None,
         }
     )
 

@@ -4,12 +4,10 @@ bad input is refused with a message naming what is wrong, never raised."""
 
 from __future__ import annotations
 
-import math
-import time
-from pathlib import Path
 from typing import Any, Protocol
 
-from bubble_rt.config import DaemonConfig, EstimatorSection
+from bubble_rt.config import DaemonConfig, EstimatorSection, param_problem
+from bubble_rt.daemon import faults
 from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 
@@ -26,7 +24,7 @@ class Daemon(Protocol):
 
     def request_tare(self) -> None: ...
 
-    def start_recording(self, path: str) -> None: ...
+    def start_recording(self, path: str, overwrite: bool = False) -> None: ...
 
     def queue_params(self, params: dict[str, float]) -> EstimatorSection: ...
 
@@ -37,7 +35,8 @@ def validate_params(
     """None when the Params are acceptable, else the error text naming the parameter.
 
     ``accepted``: the parameters the running estimator has (its kind's ``params``); any other
-    is refused."""
+    is refused. The ranges are the configuration's (``bubble_rt.config.ESTIMATOR_RANGES``):
+    nothing is applied unless every value given is acceptable."""
     if not params:
         return "set_params: no parameter given (set one of " + ", ".join(protocol.PARAM_NAMES) + ")"
     if accepted is not None:
@@ -48,12 +47,9 @@ def validate_params(
                 f"(it has {', '.join(accepted)}); nothing changed"
             )
     for k, v in params.items():
-        if not math.isfinite(v):
-            return f"set_params: {k} must be finite, got {v}"
-        if k in ("k_f", "k_u", "youngs_modulus") and v <= 0:
-            return f"set_params: {k} must be > 0, got {v}"
-        if k in ("k_const", "k_linear") and v < 0:
-            return f"set_params: {k} must be >= 0, got {v}"
+        err = param_problem(k, v)
+        if err:
+            return f"set_params: {k} {err}"
     return None
 
 
@@ -81,24 +77,26 @@ def handle_request(d: Daemon, payload: bytes) -> Any:
         d.request_tare()
         return protocol.ok_reply()
     if kind == "record_start":
-        if d.recorder is not None:
-            return protocol.error_reply(f"already recording to {d.recorder.path}")
-        path = req.record_start.path or str(
-            Path(d.config.recording.directory)
-            / time.strftime("bubble_rt-%Y%m%d-%H%M%S.mcap", time.gmtime())
-        )
+        rec = d.recorder
+        if rec is not None and not rec.failed:
+            return protocol.error_reply(f"already recording to {rec.path}")
         try:
-            d.start_recording(path)
+            path = faults.recording_path(req.record_start.path, d.config.recording.directory)
+            d.start_recording(str(path), req.record_start.overwrite)
         except Exception as exc:
-            return protocol.error_reply(f"record_start: cannot write {path}: {exc}")
-        return protocol.ok_reply(recording_path=str(Path(path).resolve()))
+            return protocol.error_reply(f"record_start: refused: {exc}")
+        if rec is not None:  # a failed recording is replaced by the new one
+            rec.close(timeout=0.0)
+        return protocol.ok_reply(recording_path=str(path.resolve()))
     if kind == "record_stop":
         rec = d.recorder
         if rec is None:
             return protocol.error_reply("record_stop: not recording")
         d.recorder = None
-        rec.close()
-        return protocol.ok_reply(recording_path=str(rec.path.resolve()))
+        ok, text = faults.stop_recorder(rec)
+        if not ok:
+            return protocol.error_reply(text)
+        return protocol.ok_reply(recording_path=text)
     return protocol.error_reply(f"unknown request {kind!r}")  # pragma: no cover
 
 

@@ -10,6 +10,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon import faults
 from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 
@@ -36,6 +37,9 @@ class Daemon(Protocol):
     _started_at: float
     _latencies: deque[float]
     _publish_times: deque[float]
+    _recording_fault_counted: bool
+
+    def _error(self, kind: str, exc: BaseException | str) -> None: ...
 
 
 def frames_dropped(d: Daemon) -> int:
@@ -67,6 +71,15 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
         return pb.Status.STARTING, reason
     if cam_reason:
         return pb.Status.DEGRADED, cam_reason
+    rec = d.recorder
+    if rec is not None and rec.failed:
+        if not d._recording_fault_counted:
+            d._recording_fault_counted = True
+            d._error("recording", rec.failed)
+        return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
+    bad = faults.bad_frame_reason(cam, now)
+    if bad:
+        return pb.Status.DEGRADED, bad
     if d.frames_published == 0:
         reason = "reference captured, waiting for the first force frame"
         if d.last_error:
@@ -88,6 +101,8 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
     st, reason = (pb.Status.STOPPED, "shut down") if stopped else state(d, now)
     recent = [t for t in list(d._publish_times) if now - t < 5.0]
     rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 2 else 0.0
+    rec = d.recorder
+    recording, recording_error, recording_dropped = faults.recording_state(rec)
     msg = pb.Status(
         protocol_version=protocol.PROTOCOL_VERSION,
         sensor_id=d.sensor_id,
@@ -97,8 +112,10 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         frame_rate_hz=rate,
         frames_published=d.frames_published,
         frames_dropped=frames_dropped(d),
-        recording=d.recorder is not None,
-        recording_path=str(d.recorder.path) if d.recorder is not None else "",
+        recording=recording,
+        recording_path=str(rec.path) if rec is not None else "",
+        recording_error=recording_error,
+        recording_dropped=recording_dropped,
         mesh_id=d.mesh_msg.mesh_id if d.mesh_msg is not None else "",
         uptime_s=now - d._started_at,
     )
@@ -109,14 +126,7 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         msg.latency.p99_ms, msg.latency.max_ms = float(p99), float(lat.max())
     srcs = [d._camera_src] + ([d._pressure_src] if d._pressure_src else [])
     for s in srcs:
-        if s is None:
-            continue
-        msg.sources.add(
-            name=s.stats.name,
-            received=s.stats.received,
-            errors=s.stats.n_errors,
-            last_error=s.stats.last_error,
-            age_s=s.stats.age(now),
-        )
-    msg.sources.add(name="daemon", errors=sum(d.errors.values()), last_error=d.last_error)
+        if s is not None:
+            faults.add_source_stats(msg, s.stats, now)
+    faults.add_daemon_stats(msg, dict(d.errors), d.last_error)
     return msg

@@ -31,7 +31,7 @@ import zmq
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig, EstimatorSection
-from bubble_rt.daemon import control, health
+from bubble_rt.daemon import control, faults, health
 from bubble_rt.daemon.processor import (
     EstimatorProcessor,
     PatchFinder,
@@ -52,8 +52,9 @@ from bubble_rt.frames import Frame
 from bubble_rt.io import protocol
 from bubble_rt.io.mcap import TOPIC_MESH
 
-#: Largest message the control socket accepts at the transport level (bigger: dropped by ZMQ).
-CONTROL_MAX_TRANSPORT_BYTES = 16 * 1024 * 1024
+#: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
+#: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
+CONTROL_MAX_TRANSPORT_BYTES = protocol.MAX_MESSAGE_BYTES
 
 
 # ------------------------------------------------------------------------ daemon
@@ -104,6 +105,7 @@ class Daemon:
         self._ref_frames: list[Frame] = []
         self._collecting: list[Frame] = []
         self.recorder: Any = None
+        self._recording_fault_counted = False
         #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
         #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
@@ -154,7 +156,11 @@ class Daemon:
         self.pub_address = str(self.pub.getsockopt_string(zmq.LAST_ENDPOINT))
         self.control_address = str(self.ctl.getsockopt_string(zmq.LAST_ENDPOINT))
         if cfg.recording.path:
-            self.start_recording(cfg.recording.path)
+            try:
+                self.start_recording(cfg.recording.path, cfg.recording.overwrite)
+            except ValueError as exc:
+                self._close_sockets()
+                raise DaemonError(f"cannot record: {exc}") from exc
         cam.start()
         if self._pressure_src is not None:
             self._pressure_src.start()
@@ -243,6 +249,14 @@ class Daemon:
         except Exception as exc:
             self._error("reference", exc)
             given = None
+        if given and cam.pressure_out is not self.pressure_buffer:
+            # Sim/recorded reference frames carry their own pressure: use the sensor's.
+            paired = None
+            while paired is None and not self._stop.is_set():
+                paired = faults.reference_with_pressure(list(given), self.pressure_buffer.at)
+                if paired is None:
+                    self._stop.wait(0.05)
+            given = paired
         if given:
             self._install_reference(list(given))
         two_stage = cfg.processing.pipeline == "two_stage"
@@ -347,6 +361,12 @@ class Daemon:
             vf = float(getattr(est, "valid_node_fraction", 1.0))
             if vf < 0.5:
                 reasons.append(f"only {vf:.0%} of nodes tracked")
+            for problem in (
+                faults.solver_problem(getattr(est, "info", None)),
+                faults.forces_problem(forces, est.net_force),
+            ):
+                if problem:
+                    reasons.append(problem)
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
             if dp is None:
@@ -465,22 +485,13 @@ class Daemon:
         """Answer one serialized ControlRequest (never raises for bad input)."""
         return control.handle_request(self, payload)
 
-    def start_recording(self, path: str) -> None:
-        """Record to the MCAP file ``path`` from now on."""
-        from bubble_rt.io.mcap import Recorder
-
-        rc = self.config.recording
-        rec = Recorder(
-            path,
-            self.camera,
-            self.mesh_msg,
-            inputs=rc.inputs,
-            chunk_size=rc.chunk_size,
-            compression=rc.compression,
-            queue_size=rc.queue,
+    def start_recording(self, path: str, overwrite: bool = False) -> None:
+        """Record to the MCAP file ``path`` from now on (raises RecordingPathError with the
+        reason: existing file without ``overwrite``, not a regular file, no such folder)."""
+        rec = faults.start_recorder(
+            path, self.config, self.camera, self.mesh_msg, self._ref_frames, overwrite
         )
-        if self._ref_frames:
-            rec.write_reference(self._ref_frames)
+        self._recording_fault_counted = False
         self.recorder = rec
 
 

@@ -9,7 +9,9 @@ frames) feed a :class:`PressureBuffer`, a fixed-size ring of (time, pascals) sam
 
 Clock: every sample is stamped on arrival with the daemon's wall clock (``time.time()``,
 seconds), so camera and pressure from different devices share one time base and end-to-end
-latency (capture -> publish) is meaningful to subscribers on the same host.
+latency (capture -> publish) is meaningful to subscribers on the same host. Reference frames
+a source provides (the simulator's, a recording's) are restamped the same way
+(:func:`restamp_reference`): nothing downstream, recordings included, sees another clock.
 """
 
 from __future__ import annotations
@@ -291,13 +293,34 @@ class IterableCamera(CameraSource):
         self.keep_index = keep_index
         self._frames = frames
         self.camera = camera
+        #: Start the frames over after an error (a device reconnecting); finite sources
+        #: (replays) end instead.
+        self.restart_on_error = True
+        #: Check each frame against ``camera`` (shape, dtype, valid depth) and skip bad ones.
+        self.camera_check = False
+        #: Bad frames skipped, named (file and index) with the reason; the last 100.
+        self.bad_frames: deque[str] = deque(maxlen=100)
         self.rate_hz = rate_hz
         self.loop = loop
         self.by_timestamps = by_timestamps
         self._reference = reference
 
     def reference_frames(self, n: int) -> list[Frame] | None:
-        return None if self._reference is None else self._reference(n)
+        """The source's reference frames, restamped with the daemon clock like every frame."""
+        frames = None if self._reference is None else self._reference(n)
+        return None if frames is None else restamp_reference(frames)
+
+    def _main(self) -> None:
+        if self.restart_on_error:
+            super()._main()
+            return
+        try:  # a finite source (replay) never starts over after an error
+            while not self._stop.is_set() and self._run() is not False:
+                pass
+        except Exception as exc:
+            self.stats.connected = False
+            self.stats.error("failed", f"{type(exc).__name__}: {exc}")
+        self.finished.set()
 
     def _run(self) -> bool | None:
         next_t = time.monotonic()
@@ -305,6 +328,21 @@ class IterableCamera(CameraSource):
         for frame in self._frames():
             if self._stop.is_set():
                 return False
+            if not isinstance(frame, Frame):  # a FrameFault: skipped, counted and named
+                self.stats.error("bad_frame", f"skipped bad frame: {frame}")
+                self.bad_frames.append(str(frame))
+                log.warning("%s: skipped bad frame: %s", self.name, frame)
+                continue
+            if self.camera_check:
+                try:
+                    frame.validate(self.camera, need_images=True)
+                except Exception as exc:
+                    where = frame.meta.get("source", self.name)
+                    fault = f"{where} frame {frame.index}: {exc}"
+                    self.stats.error("bad_frame", f"skipped bad frame: {fault}")
+                    self.bad_frames.append(fault)
+                    log.warning("%s: skipped bad frame: %s", self.name, fault)
+                    continue
             if self.rate_hz:
                 period = 1.0 / self.rate_hz
                 if self.by_timestamps and prev_src_t is not None:
@@ -389,11 +427,37 @@ def SimCamera(
     return src
 
 
+def restamp_reference(frames: list[Frame]) -> list[Frame]:
+    """Reference frames on the daemon clock (``time.time()``), their own time kept in meta.
+
+    Simulated reference frames carry negative scene times (they precede frame 0) and
+    recorded ones their recording's times: the daemon and its recordings use one clock.
+    """
+    now = time.time()
+    n = len(frames)
+    out = []
+    for i, f in enumerate(frames):
+        meta = dict(f.meta)
+        meta.setdefault("source_t", f.t)
+        t = now - (n - 1 - i) * 1e-3
+        out.append(replace(f, t=t, t_pressure=t, meta=meta))
+    return out
+
+
 def ReplayCamera(
     path: str, realtime: bool = True, loop: bool = False, **bag_options: Any
 ) -> IterableCamera:
     """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
-    (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps."""
+    (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps.
+
+    A frame that cannot be read (truncated or garbage file, wrong shape or dtype, no valid
+    depth, NaN pressure) is skipped, counted (``stats.errors["bad_frame"]``) and named in
+    ``stats.last_error``; the replay goes on to the end and, unless ``loop``, stops there: it
+    never starts over after an error. What a damaged MCAP file lost is in
+    ``stats.errors["recording"]`` / ``recording_report``. A file that is not a readable
+    recording is refused at once (:class:`SourceError` with the reason).
+    """
+    import warnings
     from pathlib import Path
 
     from bubble_rt.io.rosbag import is_rosbag
@@ -402,22 +466,27 @@ def ReplayCamera(
     if not p.exists():
         raise SourceError(f"replay: no such recording {path!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
-    if p.suffix == ".mcap" and not is_rosbag(p):
-        from bubble_rt.io.mcap import McapRecording
+    report: Any = None
+    try:
+        if p.suffix == ".mcap" and not is_rosbag(p):
+            from bubble_rt.io.mcap import McapRecording
 
-        rec: Any = McapRecording(p)
-        if rec.has_reference:
-            reference = rec.reference_frames
-    else:
-        from bubble_rt.io.recordings import open_recording
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                rec: Any = McapRecording(p)
+            report = rec.report
+            if rec.has_reference:
+                reference = rec.reference_frames
+        else:
+            from bubble_rt.io.recordings import open_recording
 
-        try:
             rec = open_recording(p, **bag_options)
-        except (ValueError, FileNotFoundError) as exc:  # FrameError / BagTopicError
-            raise SourceError(f"replay of {path!r}: {exc}") from exc
+    except Exception as exc:
+        raise SourceError(f"replay: cannot read {path}: {exc}") from exc
 
-    def frames() -> Iterator[Frame]:
-        return iter(rec)
+    def frames() -> Iterator[Any]:
+        # Bags yield frames only; the project's recordings also name the frames they skip.
+        return rec.frames(faults=True) if hasattr(rec, "frames") else iter(rec)
 
     src = IterableCamera(
         frames,
@@ -431,6 +500,16 @@ def ReplayCamera(
     )
     src.name = f"replay:{p.name}"
     src.stats.name = src.name
+    src.restart_on_error = False
+    # Frames are checked against the recording's camera when the file states it.
+    src.camera_check = getattr(rec, "has_camera_info", True)
+    src.recording_report = report  # type: ignore[attr-defined]
+    if report is not None and not report.complete:
+        text = report.summary()
+        if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:
+            text += f"; {len(rec)} of {rec.frames_indexed} frames readable"
+        src.stats.error("recording", text)
+        log.warning("replay: %s", text)
     return src
 
 

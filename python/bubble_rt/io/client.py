@@ -76,7 +76,13 @@ class Controller:
         self.close()
 
     def send_raw(self, payload: bytes, timeout_s: float | None = None) -> Any:
-        """Send raw bytes as a request and return the decoded reply (errors included)."""
+        """Send raw bytes as a request and return the decoded reply (errors included).
+
+        A request over the control socket's ZMQ_MAXMSGSIZE is not sent (ZeroMQ would drop the
+        connection without a reply): the error reply is made here.
+        """
+        if len(payload) > protocol.MAX_MESSAGE_BYTES:
+            return protocol.error_reply(protocol.too_large(len(payload)))
         sock = self._socket()
         sock.send(payload)
         if not sock.poll(int(1000 * (timeout_s or self.timeout_s))):
@@ -107,8 +113,10 @@ class Controller:
     def tare(self) -> None:
         self.request("tare")
 
-    def record_start(self, path: str = "") -> str:
-        return self.request("record_start", path=path).recording_path
+    def record_start(self, path: str = "", overwrite: bool = False) -> str:
+        """Start recording to ``path`` on the daemon's host (an existing file is refused
+        unless ``overwrite``); returns the path being written."""
+        return self.request("record_start", path=path, overwrite=overwrite).recording_path
 
     def record_stop(self) -> str:
         return self.request("record_stop").recording_path

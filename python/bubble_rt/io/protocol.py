@@ -39,6 +39,24 @@ FORCE_PREFIX = "force."
 STATUS_PREFIX = "status."
 #: Control requests above this size are refused with an error reply (bytes).
 MAX_REQUEST_BYTES = 64 * 1024
+#: ZMQ_MAXMSGSIZE of the daemon's control socket (bytes): ZeroMQ itself closes the connection
+#: of a peer sending a bigger message, before the daemon sees it, so no reply can come back;
+#: :class:`bubble_rt.io.client.Controller` refuses such a request before sending it, with the
+#: same kind of error reply. Between MAX_REQUEST_BYTES and this size the daemon replies
+#: "request too large".
+MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+
+
+def too_large(size: int) -> str:
+    """The error text for a request of ``size`` bytes over the limits."""
+    if size > MAX_MESSAGE_BYTES:
+        return (
+            f"request too large: {size} bytes (limit {MAX_REQUEST_BYTES} bytes; over "
+            f"{MAX_MESSAGE_BYTES} bytes, the control socket's ZMQ_MAXMSGSIZE, ZeroMQ drops the "
+            "connection without a reply)"
+        )
+    return f"request too large: {size} bytes (limit {MAX_REQUEST_BYTES} bytes)"
+
 
 STATE_NAMES = {
     pb.Status.STARTING: "starting",
@@ -375,6 +393,9 @@ class StatusData:
     recording_path: str
     mesh_id: str
     uptime_s: float
+    #: Why the recording stopped writing ("" while fine or not recording).
+    recording_error: str = ""
+    recording_dropped: int = 0
 
 
 def decode_status(payload: bytes | Any) -> StatusData:
@@ -404,6 +425,7 @@ def decode_status(payload: bytes | Any) -> StatusData:
                 "errors": s.errors,
                 "last_error": s.last_error,
                 "age_s": s.age_s,
+                "error_counts": dict(s.error_counts),
             }
             for s in msg.sources
         },
@@ -411,6 +433,8 @@ def decode_status(payload: bytes | Any) -> StatusData:
         recording_path=msg.recording_path,
         mesh_id=msg.mesh_id,
         uptime_s=msg.uptime_s,
+        recording_error=msg.recording_error,
+        recording_dropped=msg.recording_dropped,
     )
 
 
@@ -434,6 +458,7 @@ def make_request(kind: str, **fields: Any) -> Any:
                 setattr(req.set_params, k, float(v))
     elif kind == "record_start":
         req.record_start.path = str(fields.get("path", "") or "")
+        req.record_start.overwrite = bool(fields.get("overwrite", False))
     else:
         getattr(req, kind).SetInParent()
     return req
@@ -442,9 +467,7 @@ def make_request(kind: str, **fields: Any) -> Any:
 def parse_request(payload: bytes) -> tuple[str, pb.ControlRequest]:
     """Decode a control request; raises :class:`ProtocolError` naming the problem."""
     if len(payload) > MAX_REQUEST_BYTES:
-        raise ProtocolError(
-            f"request too large: {len(payload)} bytes (limit {MAX_REQUEST_BYTES} bytes)"
-        )
+        raise ProtocolError(too_large(len(payload)))
     req = pb.ControlRequest()
     try:
         req.ParseFromString(payload)

@@ -52,7 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
-from bubble_rt.frames import Frame, FrameError
+from bubble_rt.frames import Frame, FrameError, FrameFault
 from bubble_rt.io.punyo import punyo_pose
 
 
@@ -71,6 +71,18 @@ def fit_intrinsics(points: NDArray, width: int, height: int) -> tuple[float, flo
     fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u, rcond=None)[0]
     fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v, rcond=None)[0]
     return float(fx), float(fy), float(cx), float(cy)
+
+
+def _load_npy(path: Path, mmap_mode: Any = None) -> Any:
+    """np.load naming the file when it is missing, truncated or not an .npy file."""
+    try:
+        return np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+    except FileNotFoundError:
+        raise FrameError(f"{path}: missing") from None
+    except Exception as exc:
+        raise FrameError(
+            f"{path}: unreadable, damaged or truncated ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 class Recording:
@@ -110,6 +122,29 @@ class Recording:
         for i in range(len(self)):
             yield self._load(i)
 
+    def frames(self, faults: bool = True) -> Iterator[Frame | FrameFault]:
+        """Every frame in order; a frame that cannot be read becomes a :class:`FrameFault`
+        (with ``faults``; otherwise it is skipped) and reading goes on with the next one."""
+        for i in range(len(self)):
+            try:
+                frame = self._load(i)
+                if frame.rgb is not None and frame.rgb.shape[:2] != (
+                    self.camera.height,
+                    self.camera.width,
+                ):
+                    raise FrameError(
+                        f"rgb is {frame.rgb.shape[0]} x {frame.rgb.shape[1]}, the recording's "
+                        f"camera is {self.camera.height} x {self.camera.width}"
+                    )
+            except Exception as exc:
+                if faults:
+                    text = (
+                        str(exc) if isinstance(exc, FrameError) else f"{type(exc).__name__}: {exc}"
+                    )
+                    yield FrameFault(i, f"{self.path.name} frame {i}", text)
+                continue
+            yield frame
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.path)!r}, frames={len(self)})"
 
@@ -148,11 +183,11 @@ class PunyoRecording(Recording):
                 raise FrameError(f"{dj}: {len(rows)} rows for {self._n} frames")
             self.rows = rows
             wrenches = np.array([np.asarray(r[3], dtype=np.float64) for r in rows[: self._n]])
-        rgb0 = np.load(exp / "rgb_0.npy", mmap_mode="r")
+        rgb0 = _load_npy(exp / "rgb_0.npy", mmap_mode="r")
         if rgb0.ndim != 3 or rgb0.shape[2] != 3:
             raise FrameError(f"{exp / 'rgb_0.npy'}: rgb must be H x W x 3, got {rgb0.shape}")
         h, w = int(rgb0.shape[0]), int(rgb0.shape[1])
-        fx, fy, cx, cy = fit_intrinsics(np.load(exp / "pc_0.npy"), w, h)
+        fx, fy, cx, cy = fit_intrinsics(_load_npy(exp / "pc_0.npy"), w, h)
         camera = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h)
         camera = camera.with_pose(punyo_pose() if pose is None else np.asarray(pose))
         super().__init__(path, camera, wrenches)
@@ -173,9 +208,16 @@ class PunyoRecording(Recording):
         return self._n
 
     def _load(self, i: int) -> Frame:
-        rgb = np.load(self._exp / f"rgb_{i}.npy")
-        pc = np.load(self._exp / f"pc_{i}.npy")
-        pressure = np.load(self._exp / f"pressure_{i}.npy")
+        rgb = _load_npy(self._exp / f"rgb_{i}.npy")
+        pc = _load_npy(self._exp / f"pc_{i}.npy")
+        pressure = _load_npy(self._exp / f"pressure_{i}.npy")
+        if rgb.shape != (self.camera.height, self.camera.width, 3) or rgb.dtype != np.uint8:
+            raise FrameError(
+                f"{self._exp / f'rgb_{i}.npy'}: {' x '.join(map(str, rgb.shape))} {rgb.dtype}, "
+                f"expected {self.camera.height} x {self.camera.width} x 3 uint8"
+            )
+        if np.size(pressure) != 1 or not np.isfinite(np.asarray(pressure, dtype=float)).all():
+            raise FrameError(f"{self._exp / f'pressure_{i}.npy'}: not a finite scalar: {pressure}")
         t = float(i)
         wrench = None
         meta: dict[str, Any] = {"source": str(self.path)}
