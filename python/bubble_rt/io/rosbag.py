@@ -50,6 +50,7 @@ as header stamp and bag timestamp. :func:`write_bag` writes frames in the kit's 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -733,6 +734,10 @@ def read_node_cloud(msg: Any) -> dict[str, NDArray]:
     return out
 
 
+#: write_bag's pressure stream starts this long before the first frame and ends after the last.
+PRESSURE_LEAD_S = 0.05
+
+
 def write_bag(
     path: str | Path,
     frames: Sequence[Frame],
@@ -760,7 +765,18 @@ def write_bag(
     a WrenchStamped per frame when ``wrench`` and the frames carry one. ``tf`` adds a
     ``/tf_static`` with the camera pose; ``aligned`` names depth ``aligned_depth_to_color``.
     ``camera_info``/``pressure`` False and ``depth_size`` exist to write broken bags in tests.
+    A bag's clock cannot go below 0 and the pressure stream starts ``PRESSURE_LEAD_S`` before
+    the first frame: earlier frames (the simulator stamps its reference frames before 0) are
+    all shifted so that the earliest is at ``PRESSURE_LEAD_S``.
     """
+    shift = PRESSURE_LEAD_S - min((f.t for f in frames), default=PRESSURE_LEAD_S)
+    if shift > 0:
+        frames = [
+            dataclasses.replace(
+                f, t=f.t + shift, t_pressure=None if f.t_pressure is None else f.t_pressure + shift
+            )
+            for f in frames
+        ]
     bag = _Bag(path, storage)
     ts = bag.ts
     ns_ = f"/{sensor}"
@@ -889,7 +905,9 @@ def write_bag(
                     ns,
                 )
         if pressure and frames:
-            t_s = np.arange(frames[0].t - 0.05, frames[-1].t + 0.05, 1.0 / pressure_hz)
+            t_s = np.arange(
+                frames[0].t - PRESSURE_LEAD_S, frames[-1].t + PRESSURE_LEAD_S, 1.0 / pressure_hz
+            )
             F32 = ts.types[FLOAT32]
             for t in t_s:
                 hpa = np.float32(_pressure_curve(frames, t) / HPA)
