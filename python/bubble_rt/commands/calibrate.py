@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
             "flow": args.flow,
         },
     )
-    print("| parameter | paper default | calibrated |\n|---|---|---|")
+    print("| parameter | default | calibrated |\n|---|---|---|")
     for k in cal.PARAMS:
         print(f"| {k} | {res.initial_params[k]:.6g} | {res.params[k]:.6g} |")
     print(
@@ -152,7 +152,7 @@ def run_recordings(args: argparse.Namespace) -> int:
             **out.info(),
         },
     )
-    print("| parameter | paper default | calibrated |\n|---|---|---|")
+    print("| parameter | default | calibrated |\n|---|---|---|")
     for k in cal.PARAMS:
         print(f"| {k} | {res.initial_params[k]:.6g} | {res.params[k]:.6g} |")
     how = "fitted (Kabsch)" if out.rotation_fitted else "given"

@@ -9,7 +9,7 @@ Per observation (frame) with ground-truth net force ``f_gt`` (N) and node contac
 threshold the estimator itself uses, ``max(k_const, k_linear * (a . p) / sum(a))``.
 lambda1 = 1 N^-1, lambda2 = 10, k_opt = 2. The sum of L over all frames is minimised by a SciPy
 black-box optimiser (Nelder-Mead, or Powell) over ``x = log(theta / theta_default)`` for
-``theta = (E, k_f, k_u)``, bounded to a factor ``bound`` either side of the paper defaults and to
+``theta = (E, k_f, k_u)``, bounded to a factor ``bound`` either side of the defaults and to
 ``max_evals`` loss evaluations.
 
 The per-frame displacements (U, dp) are computed once (flow + lifting are independent of the
