@@ -42,7 +42,14 @@ class EstimatorProcessor:
     """The real processor: the estimation ``Pipeline`` the config describes, its two stages
     run by the daemon's two threads."""
 
-    def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        camera: Camera,
+        frames: list[Frame],
+        mesh: Mesh | None = None,
+    ) -> None:
+        """``mesh``: an already fitted mesh (a replayed recording's), used as it is."""
         from bubble_rt.estimation.deformation import FlowSettings
         from bubble_rt.estimation.estimator import CONFIG_KEYS, EstimatorConfig, config_changes
         from bubble_rt.estimation.pipeline import Pipeline
@@ -55,8 +62,8 @@ class EstimatorProcessor:
         self.pipeline = Pipeline.capture(
             frames,
             camera,
-            mesh=ec.mesh,
-            fit=ec.fit_mesh,
+            mesh=ec.mesh if mesh is None else mesh,
+            fit=ec.fit_mesh and mesh is None,
             kind=ec.kind,
             config=est,
             flow=FlowSettings(
@@ -74,6 +81,10 @@ class EstimatorProcessor:
 
     def stage2(self, frame: Frame, data: Any) -> Any:
         return self.pipeline.solve(frame, data)
+
+    def cold_start(self) -> None:
+        """The next solve starts cold (no warm start from the previous frame)."""
+        self.pipeline.cold_start()
 
     def set_reference(self, frames: list[Frame]) -> None:
         from bubble_rt.estimation.deformation import Reference
