@@ -48,6 +48,9 @@ class ParamRange:
     unit: str = ""
     integer: bool = False
 
+    def __str__(self) -> str:
+        return self.text()
+
     def text(self) -> str:
         """``[lo, hi] unit`` as the messages and ``config dump`` show it."""
         unit = f" {self.unit}" if self.unit else ""
@@ -102,6 +105,10 @@ def key_choices(f: dataclasses.Field[Any]) -> tuple[str, ...] | None:
     """The accepted words of a key with a fixed set (None for other keys)."""
     c = f.metadata.get("choices")
     return c() if callable(c) else c
+
+
+def _field(obj: Any, name: str) -> dataclasses.Field[Any]:
+    return next(f for f in fields(obj) if f.name == name)
 
 
 def check_fields(obj: Any) -> None:
@@ -236,7 +243,8 @@ class PressureConfig:
         _check(
             self.min_pa < self.max_pa,
             "max_pa",
-            f"must be greater than min_pa ({self.min_pa:g}), got {self.max_pa!r}",
+            f"must be greater than min_pa ({self.min_pa:g}) and in "
+            f"{key_range(_field(self, 'max_pa'))}, got {self.max_pa!r}",
         )
         if kind == "constant":
             try:
@@ -296,10 +304,8 @@ class EstimatorSection:
     youngs_modulus: float = option(1.317e6, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa")
     poisson: float = option(0.5, "membrane Poisson ratio", lo=0.0, hi=0.5)
     thickness: float = option(0.65e-3, "membrane thickness", lo=1e-5, hi=1e-2, unit="m")
-    k_const: float = option(
-        2000.0, "pressure calibration: constant term", lo=0.0, hi=1e6, unit="Pa"
-    )
-    k_linear: float = option(2.0, "pressure calibration: linear term", lo=0.0, hi=1e3)
+    k_const: float = option(2000.0, "contact threshold: constant term", lo=0.0, hi=1e6, unit="Pa")
+    k_linear: float = option(2.0, "contact threshold: factor on the mean pressure", lo=0.0, hi=1e3)
 
     def __post_init__(self) -> None:
         from bubble_rt.mesh import PRESETS
@@ -350,7 +356,14 @@ class FlowSection:
 class ReferenceSection:
     """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
 
-    frames: int = option(10, "frames averaged into the reference", lo=1, hi=1000, unit="frames")
+    frames: int = option(
+        10,
+        "frames averaged into the reference (kept in memory until it is captured: about 2 MB "
+        "each at 640 x 480)",
+        lo=1,
+        hi=300,
+        unit="frames",
+    )
 
     def __post_init__(self) -> None:
         check_fields(self)
