@@ -1,9 +1,13 @@
 """Daemon configuration: one TOML file mirrored by frozen dataclasses.
 
 Every section is a table in the file; every key has a default, so an empty file is valid.
-Loading rejects unknown keys, wrong types and out-of-range values with a :class:`ConfigError`
-whose message starts with the dotted key at fault (e.g. ``estimator.k_f: must be > 0``).
-``bubble-rt config dump`` prints the defaults.
+Every key is declared with :func:`option`: its documentation, and for numbers its range
+(:class:`ParamRange`, in the field's metadata) or for words its choices. One validator
+(:func:`check_fields`) checks every key when a section is built, whether it comes from a file,
+a dict or a command-line flag; loading rejects unknown keys, wrong types and out-of-range
+values with a :class:`ConfigError` naming the dotted key, the value and the range (e.g.
+``estimator.k_f: must be in [0.0001, 1000] 1/N, got nan``). ``bubble-rt config dump`` prints
+the configuration with each key's documentation and range as comments.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -33,59 +38,103 @@ def _check(cond: bool, key: str, message: str) -> None:
         raise ConfigError(key, message)
 
 
-def _positive(obj: Any, *names: str) -> None:
-    for n in names:
-        v = getattr(obj, n)
-        _check(math.isfinite(v) and v > 0, n, f"must be a positive number, got {v!r}")
-
-
-def _non_negative(obj: Any, *names: str) -> None:
-    for n in names:
-        v = getattr(obj, n)
-        _check(math.isfinite(v) and v >= 0, n, f"must be >= 0, got {v!r}")
-
-
 @dataclass(frozen=True)
 class ParamRange:
-    """Accepted values of one numeric parameter: finite and within [lo, hi] (units for messages)."""
+    """Accepted values of one numeric key: finite and within [lo, hi] (``unit`` for messages;
+    ``integer``: whole numbers only)."""
 
     lo: float
     hi: float
     unit: str = ""
+    integer: bool = False
+
+    def __str__(self) -> str:
+        return self.text()
+
+    def text(self) -> str:
+        """``[lo, hi] unit`` as the messages and ``config dump`` show it."""
+        unit = f" {self.unit}" if self.unit else ""
+        return f"[{_num(self.lo, self.integer)}, {_num(self.hi, self.integer)}]{unit}"
 
     def problem(self, value: Any) -> str | None:
         """None when ``value`` is acceptable, else what is wrong with it (no key name)."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"must be a number, got {value!r}"
-        v = float(value)
-        if not math.isfinite(v):
-            return f"must be finite, got {v!r}"
-        if not self.lo <= v <= self.hi:
-            unit = f" {self.unit}" if self.unit else ""
-            return f"must be in [{self.lo:g}, {self.hi:g}]{unit}, got {v!r}"
+            kind = "an integer" if self.integer else "a number"
+            return f"must be {kind} in {self.text()}, got {value!r}"
+        if self.integer and not isinstance(value, int):
+            return f"must be an integer in {self.text()}, got {value!r}"
+        if not (math.isfinite(value) and self.lo <= value <= self.hi):
+            return f"must be in {self.text()}, got {value!r}"
         return None
 
 
-#: Ranges of the estimator parameters, the one place both configuration loading
-#: (``[estimator]``) and the live ``set_params`` control request check them. Values outside
-#: these ranges make the solve singular or non-finite (e.g. k_u = 5e-324, E = 1e308).
-ESTIMATOR_RANGES: dict[str, ParamRange] = {
-    "k_f": ParamRange(1e-4, 1e3, "1/N"),
-    "k_u": ParamRange(1e2, 1e10, "1/m^2"),
-    "youngs_modulus": ParamRange(1e4, 1e8, "Pa"),
-    "poisson": ParamRange(0.0, 0.5),
-    "thickness": ParamRange(1e-5, 1e-2, "m"),
-    "k_const": ParamRange(0.0, 1e6, "Pa"),
-    "k_linear": ParamRange(0.0, 1e3),
-}
+def _num(x: float, integer: bool) -> str:
+    return str(int(x)) if integer else f"{x:g}"
 
 
-def param_problem(name: str, value: Any) -> str | None:
-    """None if ``value`` is acceptable for estimator parameter ``name``, else the reason."""
-    rng = ESTIMATOR_RANGES.get(name)
-    if rng is None:
-        return f"unknown parameter; expected one of {', '.join(ESTIMATOR_RANGES)}"
-    return rng.problem(value)
+Choices = tuple[str, ...] | Callable[[], tuple[str, ...]]
+
+
+def option(
+    default: Any,
+    doc: str,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    unit: str = "",
+    choices: Choices | None = None,
+) -> Any:
+    """A configuration key: its default, documentation and accepted values (checked by
+    :func:`check_fields`; numbers need ``lo``/``hi``)."""
+    meta: dict[str, Any] = {"doc": doc}
+    if isinstance(default, (int, float)) and not isinstance(default, bool):
+        if lo is None or hi is None:
+            raise TypeError(f"numeric option {default!r} needs a range (lo, hi)")
+        meta["range"] = ParamRange(float(lo), float(hi), unit, integer=isinstance(default, int))
+    if choices is not None:
+        meta["choices"] = choices
+    return field(default=default, metadata=meta)
+
+
+def key_range(f: dataclasses.Field[Any]) -> ParamRange | None:
+    """The range of a numeric key (None for other keys)."""
+    return f.metadata.get("range")
+
+
+def key_choices(f: dataclasses.Field[Any]) -> tuple[str, ...] | None:
+    """The accepted words of a key with a fixed set (None for other keys)."""
+    c = f.metadata.get("choices")
+    return c() if callable(c) else c
+
+
+def _field(obj: Any, name: str) -> dataclasses.Field[Any]:
+    return next(f for f in fields(obj) if f.name == name)
+
+
+def check_fields(obj: Any) -> None:
+    """Check every key of section ``obj`` against its declared range or choices."""
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        rng = key_range(f)
+        if rng is not None:
+            err = rng.problem(v)
+            _check(err is None, f.name, err or "")
+        choices = key_choices(f)
+        if choices is not None:
+            _check(
+                v in choices,
+                f.name,
+                "must be " + _one_of(choices) + f", got {v!r}",
+            )
+        if isinstance(f.default, bool):
+            _check(isinstance(v, bool), f.name, f"must be true or false, got {v!r}")
+        elif isinstance(f.default, str):
+            _check(isinstance(v, str), f.name, f"must be a string, got {v!r}")
+
+
+def _one_of(choices: tuple[str, ...]) -> str:
+    words = [repr(c) for c in choices]
+    return words[0] if len(words) == 1 else "one of " + ", ".join(words)
 
 
 CAMERA_KINDS = ("sim", "replay", "realsense")
@@ -103,26 +152,41 @@ class CameraConfig:
     """Where RGBD frames come from.
 
     source: "sim" (built-in demo scene), "sim:<scene name or .toml>", "replay:<recording>"
-    (this project's .mcap or a punyo folder), "realsense" or "realsense:<serial number>".
+    (this project's .mcap, a punyo folder or a ROS 2 bag), "realsense" or
+    "realsense:<serial number>".
     """
 
-    source: str = "sim"
-    #: Replay/sim pacing: "realtime" (by timestamps / camera rate) or "fast" (no waiting,
-    #: every frame processed, nothing dropped).
-    pace: str = "realtime"
-    #: Restart a finite source (sim scene, replay) from the beginning when it ends.
-    loop: bool = True
-    #: Simulator: keep the first pass of the scene in memory and replay it (saves the
-    #: rendering CPU for the estimator; about 2 MB per 640 x 480 frame).
-    sim_prerender: bool = True
-    #: RealSense stream settings (the simulator uses its scene's camera and rate).
-    width: int = 640
-    height: int = 480
-    fps: int = 30
-    #: No frame for this long: status degraded ("camera stalled").
-    stall_timeout_s: float = 0.5
+    source: str = option(
+        "sim", "sim[:scene], replay:<recording> or realsense[:serial]; opened at start"
+    )
+    pace: str = option(
+        "realtime",
+        "replay/sim pacing: realtime (by timestamps / camera rate) or fast (no waiting, every "
+        "frame processed, nothing dropped)",
+        choices=("realtime", "fast"),
+    )
+    loop: bool = option(True, "restart a finite source (sim scene, replay) when it ends")
+    sim_prerender: bool = option(
+        True,
+        "simulator: keep the first pass of the scene in memory and replay it (about 2 MB per "
+        "640 x 480 frame)",
+    )
+    width: int = option(640, "RealSense stream width", lo=16, hi=8192, unit="px")
+    height: int = option(480, "RealSense stream height", lo=16, hi=8192, unit="px")
+    fps: int = option(30, "RealSense frame rate", lo=1, hi=1000, unit="Hz")
+    stall_timeout_s: float = option(
+        0.5, "no frame for this long: status degraded (camera stalled)", lo=0.01, hi=3600, unit="s"
+    )
+    replay_settings: str = option(
+        "recorded",
+        "replay of this project's MCAP: 'recorded' uses the estimator, flow and solver settings "
+        "and the fitted mesh stored in the recording (so the replay reproduces the live "
+        "forces); 'config' uses this configuration's",
+        choices=("recorded", "config"),
+    )
 
     def __post_init__(self) -> None:
+        check_fields(self)
         kind, arg = split_source(self.source)
         _check(
             kind in CAMERA_KINDS,
@@ -131,8 +195,6 @@ class CameraConfig:
             "realsense[:serial]",
         )
         _check(kind != "replay" or bool(arg), "source", "replay needs a path: replay:<path>")
-        _check(self.pace in ("realtime", "fast"), "pace", "must be 'realtime' or 'fast'")
-        _positive(self, "width", "height", "fps", "stall_timeout_s")
 
 
 @dataclass(frozen=True)
@@ -143,21 +205,33 @@ class PressureConfig:
     microcontroller printing the line protocol, see README) or "constant:<pascals>".
     """
 
-    source: str = "camera"
-    baud: int = 115200
-    #: Unit of readings that carry none: "hPa" or "Pa".
-    default_unit: str = "hPa"
-    #: Readings outside [min_pa, max_pa] are rejected as out of range (absolute pressure).
-    min_pa: float = 30000.0
-    max_pa: float = 200000.0
-    #: Pressure older than this at a camera frame's capture time marks the frame degraded.
-    stale_timeout_s: float = 0.25
-    #: Samples kept for interpolation (a ring buffer; about 5 s at 100 Hz).
-    buffer: int = 512
-    #: Reopen a vanished serial port every this many seconds.
-    reconnect_s: float = 0.5
+    source: str = option(
+        "camera", "camera, serial:<port> or constant:<pascals> (within [min_pa, max_pa])"
+    )
+    baud: int = option(115200, "serial port speed", lo=300, hi=10_000_000, unit="baud")
+    default_unit: str = option("hPa", "unit of readings that carry none", choices=("hPa", "Pa"))
+    min_pa: float = option(
+        30000.0, "readings below are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+    )
+    max_pa: float = option(
+        200000.0, "readings above are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+    )
+    stale_timeout_s: float = option(
+        0.25,
+        "pressure older than this at a frame's capture time marks the frame degraded",
+        lo=0.001,
+        hi=60,
+        unit="s",
+    )
+    buffer: int = option(
+        512, "samples kept for interpolation (ring buffer)", lo=2, hi=1_000_000, unit="samples"
+    )
+    reconnect_s: float = option(
+        0.5, "reopen a vanished serial port every this many seconds", lo=0.01, hi=3600, unit="s"
+    )
 
     def __post_init__(self) -> None:
+        check_fields(self)
         kind, arg = split_source(self.source)
         _check(
             kind in PRESSURE_KINDS,
@@ -166,28 +240,41 @@ class PressureConfig:
             "constant:<pascals>",
         )
         _check(kind != "serial" or bool(arg), "source", "serial needs a port: serial:<port>")
+        _check(
+            self.min_pa < self.max_pa,
+            "max_pa",
+            f"must be greater than min_pa ({self.min_pa:g}) and in "
+            f"{key_range(_field(self, 'max_pa'))}, got {self.max_pa!r}",
+        )
         if kind == "constant":
             try:
-                float(arg)
+                value = float(arg)
             except ValueError:
-                raise ConfigError("source", f"constant pressure {arg!r} is not a number") from None
-        _check(self.default_unit in ("hPa", "Pa"), "default_unit", "must be 'hPa' or 'Pa'")
-        _positive(self, "baud", "min_pa", "max_pa", "stale_timeout_s", "buffer", "reconnect_s")
-        _check(self.min_pa < self.max_pa, "max_pa", "must be greater than min_pa")
+                raise ConfigError(
+                    "source", f"constant pressure {arg!r} is not a number (pascals)"
+                ) from None
+            rng = ParamRange(self.min_pa, self.max_pa, "Pa (pressure.min_pa, max_pa)")
+            err = rng.problem(value)
+            _check(err is None, "source", f"constant pressure {err}")
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
     """ZeroMQ endpoints (any ZeroMQ address: tcp://host:port, ipc://path)."""
 
-    pub: str = "tcp://127.0.0.1:5555"
-    control: str = "tcp://127.0.0.1:5556"
-    #: Messages queued per subscriber before the daemon drops (a slow subscriber never blocks).
-    sndhwm: int = 8
-    #: Status message period, seconds.
-    status_period_s: float = 1.0
+    pub: str = option("tcp://127.0.0.1:5555", "force frames and status (PUB), bound at start")
+    control: str = option("tcp://127.0.0.1:5556", "control requests (ROUTER), bound at start")
+    sndhwm: int = option(
+        8,
+        "messages queued per subscriber before the daemon drops (a slow subscriber never blocks)",
+        lo=1,
+        hi=100_000,
+        unit="messages",
+    )
+    status_period_s: float = option(1.0, "status message period", lo=0.01, hi=3600, unit="s")
 
     def __post_init__(self) -> None:
+        check_fields(self)
         for n in ("pub", "control"):
             v = getattr(self, n)
             _check("://" in v, n, f"not a ZeroMQ address: {v!r} (e.g. tcp://127.0.0.1:5555)")
@@ -196,56 +283,61 @@ class NetworkConfig:
             "control",
             "must differ from network.pub",
         )
-        _positive(self, "sndhwm", "status_period_s")
 
 
 @dataclass(frozen=True)
 class EstimatorSection:
     """Force estimator (method.md): a registered kind (``bubble_rt.estimation.registry``):
     "fem" (group-lasso FEM) or "frictionless" (baseline). The parameter keys map onto
-    EstimatorConfig through ``bubble_rt.estimation.estimator.CONFIG_KEYS``."""
+    EstimatorConfig through ``bubble_rt.estimation.estimator.CONFIG_KEYS``. Their ranges keep
+    the solve regular (outside them it is singular or non-finite, e.g. k_u = 5e-324,
+    E = 1e308); ``set_params`` checks the same ranges."""
 
-    kind: str = "fem"
-    #: Mesh preset ("coarse" 227, "medium" 390, "fine" 749 nodes) or a mesh file path.
-    mesh: str = "medium"
-    #: Fit the mesh onto the membrane surface seen in the reference frames.
-    fit_mesh: bool = True
-    #: Defaults: bubble_rt.estimation.estimator.EstimatorConfig (E fitted for the inflated model).
-    k_f: float = 0.1
-    k_u: float = 537592.0
-    youngs_modulus: float = 0.66e6
-    poisson: float = 0.5
-    thickness: float = 0.65e-3
-    k_const: float = 2000.0
-    k_linear: float = 2.0
+    #: Parameter defaults are EstimatorConfig's (tested): E fitted for the inflated model.
+    kind: str = option("fem", "estimator kind", choices=estimator_kinds)
+    mesh: str = option(
+        "medium",
+        "mesh preset (coarse 227, medium 390, fine 749 nodes) or a mesh file, loaded at start",
+    )
+    fit_mesh: bool = option(True, "fit the mesh onto the membrane seen in the reference frames")
+    k_f: float = option(0.1, "force sparsity weight", lo=1e-4, hi=1e3, unit="1/N")
+    k_u: float = option(537592.0, "displacement fit weight", lo=1e2, hi=1e10, unit="1/m^2")
+    youngs_modulus: float = option(0.66e6, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa")
+    poisson: float = option(0.5, "membrane Poisson ratio", lo=0.0, hi=0.5)
+    thickness: float = option(0.65e-3, "membrane thickness", lo=1e-5, hi=1e-2, unit="m")
+    k_const: float = option(2000.0, "contact threshold: constant term", lo=0.0, hi=1e6, unit="Pa")
+    k_linear: float = option(2.0, "contact threshold: factor on the mean pressure", lo=0.0, hi=1e3)
 
     def __post_init__(self) -> None:
         from bubble_rt.mesh import PRESETS
 
-        kinds = estimator_kinds()
-        _check(self.kind in kinds, "kind", "must be " + " or ".join(repr(k) for k in kinds))
+        check_fields(self)
         _check(bool(self.mesh), "mesh", "must name a preset or a mesh file")
         if self.mesh not in PRESETS:
+            p = Path(self.mesh)
             _check(
-                Path(self.mesh).exists(),
+                p.exists(),
                 "mesh",
                 f"{self.mesh!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file",
             )
-        for name in ESTIMATOR_RANGES:
-            err = param_problem(name, getattr(self, name))
-            _check(err is None, name, err or "")
+            _check(p.is_file(), "mesh", f"{self.mesh!r} is not a file")
 
 
 @dataclass(frozen=True)
 class SolverSection:
     """Real-time budget of the ADMM solver (other SolverSettings keep the core's defaults)."""
 
-    #: Per-frame solve budget, milliseconds (0: none). The best iterate so far is published
-    #: with solver status "time_limit_reached".
-    time_limit_ms: float = 25.0
+    time_limit_ms: float = option(
+        25.0,
+        "per-frame solve budget (0: none); the best iterate so far is published with solver "
+        "status time_limit_reached",
+        lo=0,
+        hi=10_000,
+        unit="ms",
+    )
 
     def __post_init__(self) -> None:
-        _non_negative(self, "time_limit_ms")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -253,76 +345,91 @@ class FlowSection:
     """Optical flow settings passed to the deformation tracker (FlowSettings; its other
     settings keep the deformation module's defaults)."""
 
-    method: str = DEFAULT_FLOW_METHOD
-    scale: float = 1.0
-    forward_backward: bool = False
+    method: str = option(DEFAULT_FLOW_METHOD, "optical flow method", choices=FLOW_METHODS)
+    scale: float = option(1.0, "image scale the flow runs at", lo=0.05, hi=1.0)
+    forward_backward: bool = option(False, "forward-backward consistency check")
 
     def __post_init__(self) -> None:
-        _check(self.method in FLOW_METHODS, "method", f"must be one of {', '.join(FLOW_METHODS)}")
-        _check(0 < self.scale <= 1.0, "scale", "must be in (0, 1]")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
 class ReferenceSection:
     """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
 
-    frames: int = 10
+    frames: int = option(
+        10,
+        "frames averaged into the reference (kept in memory until it is captured: about 2 MB "
+        "each at 640 x 480)",
+        lo=1,
+        hi=300,
+        unit="frames",
+    )
 
     def __post_init__(self) -> None:
-        _positive(self, "frames")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
 class ProcessingConfig:
     """Pipeline: "two_stage" overlaps the deformation of frame k+1 with the solve of frame k."""
 
-    pipeline: str = "two_stage"
-    #: Pause between two stage-one frames waiting for a newer frame, seconds.
-    poll_s: float = 0.05
-    #: Threads of OpenCV's parallel loops in the C++ core (OPENCV_FOR_THREADS_NUM; 0: OpenCV's
-    #: default). One per stage lets the flow and the solve each keep a core instead of
-    #: fighting over both. Takes effect only if the core is not loaded yet when the daemon starts.
-    opencv_threads: int = 1
+    pipeline: str = option("two_stage", "pipeline layout", choices=("two_stage", "single"))
+    poll_s: float = option(
+        0.05,
+        "pause between two stage-one frames waiting for a newer one",
+        lo=0.001,
+        hi=10,
+        unit="s",
+    )
+    opencv_threads: int = option(
+        1,
+        "threads of OpenCV's parallel loops in the C++ core (OPENCV_FOR_THREADS_NUM; 0: "
+        "OpenCV's default); takes effect only if the core is not loaded yet at start",
+        lo=0,
+        hi=256,
+        unit="threads",
+    )
 
     def __post_init__(self) -> None:
-        _check(
-            self.pipeline in ("two_stage", "single"), "pipeline", "must be 'two_stage' or 'single'"
-        )
-        _positive(self, "poll_s")
-        _check(self.opencv_threads >= 0, "opencv_threads", "must be >= 0")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
 class RecordingConfig:
     """MCAP recording. ``path`` non-empty: record from start-up."""
 
-    path: str = ""
-    #: Where record_start without a path writes (timestamped file name).
-    directory: str = "."
-    #: Also record the input images and pressure (needed for replay), not only outputs.
-    inputs: bool = True
-    #: Chunk size, bytes: a crash loses at most the unflushed chunk.
-    chunk_size: int = 4 * 1024 * 1024
-    compression: str = "lz4"
-    #: Messages waiting for the writer thread; beyond it frames are dropped from the file.
-    queue: int = 64
-    #: Replace an existing file at ``path`` (otherwise recording to an existing file is refused).
-    overwrite: bool = False
+    path: str = option(
+        "", "record from start-up to this file (created at start; its folder must exist)"
+    )
+    directory: str = option(".", "where record_start without a path writes (timestamped name)")
+    inputs: bool = option(True, "also record the input images and pressure (needed for replay)")
+    chunk_size: int = option(
+        4 * 1024 * 1024,
+        "chunk size: a crash loses at most the unflushed chunk",
+        lo=1024,
+        hi=1 << 30,
+        unit="bytes",
+    )
+    compression: str = option("lz4", "chunk compression", choices=("lz4", "zstd", "none"))
+    queue: int = option(
+        64,
+        "messages waiting for the writer thread; beyond it frames are dropped from the file",
+        lo=1,
+        hi=100_000,
+        unit="messages",
+    )
+    overwrite: bool = option(False, "replace an existing file at path (otherwise refused)")
 
     def __post_init__(self) -> None:
-        _check(
-            self.compression in ("lz4", "zstd", "none"),
-            "compression",
-            "must be 'lz4', 'zstd' or 'none'",
-        )
-        _positive(self, "chunk_size", "queue")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
 class DaemonConfig:
     """The whole daemon configuration (one TOML file, one table per section)."""
 
-    sensor_id: str = "bubble0"
+    sensor_id: str = option("bubble0", "letters, digits, '-' or '_' (it becomes a topic)")
     camera: CameraConfig = field(default_factory=CameraConfig)
     pressure: PressureConfig = field(default_factory=PressureConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
@@ -332,16 +439,21 @@ class DaemonConfig:
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
-    #: Daemon stops within this time after SIGINT/SIGTERM (threads joined, file finalised).
-    shutdown_timeout_s: float = 2.0
+    shutdown_timeout_s: float = option(
+        2.0,
+        "the daemon stops within this time after SIGINT/SIGTERM (threads joined, file finalised)",
+        lo=0.1,
+        hi=600,
+        unit="s",
+    )
 
     def __post_init__(self) -> None:
+        check_fields(self)
         _check(
             bool(self.sensor_id) and all(c.isalnum() or c in "-_" for c in self.sensor_id),
             "sensor_id",
             f"must be letters, digits, '-' or '_' (it becomes a topic), got {self.sensor_id!r}",
         )
-        _positive(self, "shutdown_timeout_s")
 
     # ---------------------------------------------------------------- conversion
     def to_dict(self) -> dict[str, Any]:
@@ -412,16 +524,94 @@ def _build(cls: Any, data: Any, prefix: str) -> Any:
         if dataclasses.is_dataclass(default):
             kwargs[name] = _build(type(default), value, prefix + name + ".")
             continue
+        rng = key_range(known[name])
         if not _type_ok(value, default):
+            hint = f"; range {rng.text()}" if rng is not None else ""
             raise ConfigError(
                 prefix + name,
-                f"expected {type(default).__name__}, got {type(value).__name__} ({value!r})",
+                f"expected {type(default).__name__}, got {type(value).__name__} ({value!r}){hint}",
             )
+        if rng is not None:  # before float(): a huge int must be refused, not overflow
+            err = rng.problem(value)
+            _check(err is None, prefix + name, err or "")
         kwargs[name] = float(value) if isinstance(default, float) else value
     try:
         return replace(defaults, **kwargs)
     except ConfigError as exc:
         raise ConfigError(prefix + exc.key, exc.message) from None
+
+
+#: Ranges of the estimator parameters (from the [estimator] keys), the one place both
+#: configuration loading and the live ``set_params`` control request check them.
+ESTIMATOR_RANGES: dict[str, ParamRange] = {
+    f.name: r for f in fields(EstimatorSection) if (r := key_range(f)) is not None
+}
+
+
+def param_problem(name: str, value: Any) -> str | None:
+    """None if ``value`` is acceptable for estimator parameter ``name``, else the reason."""
+    rng = ESTIMATOR_RANGES.get(name)
+    if rng is None:
+        return f"unknown parameter; expected one of {', '.join(ESTIMATOR_RANGES)}"
+    return rng.problem(value)
+
+
+def sections() -> dict[str, type]:
+    """Section name -> its dataclass ("" for the top-level keys of DaemonConfig)."""
+    out: dict[str, type] = {"": DaemonConfig}
+    for f in fields(DaemonConfig):
+        if dataclasses.is_dataclass(f.default_factory):  # type: ignore[arg-type]
+            out[f.name] = f.default_factory  # type: ignore[assignment]
+    return out
+
+
+def keys() -> list[tuple[str, dataclasses.Field[Any]]]:
+    """Every configuration key: (dotted name, its dataclass field), sections expanded."""
+    out = []
+    for sec, cls in sections().items():
+        for f in fields(cls):
+            if sec == "" and f.name in sections():
+                continue
+            out.append((f"{sec}.{f.name}" if sec else f.name, f))
+    return out
+
+
+def key_comment(f: dataclasses.Field[Any]) -> str:
+    """``config dump``'s comment for a key: its documentation and accepted values."""
+    doc = f.metadata.get("doc", "")
+    rng, choices = key_range(f), key_choices(f)
+    if rng is not None:
+        doc += f"; range {rng.text()}"
+    elif choices is not None:
+        doc += "; " + _one_of(choices)
+    elif isinstance(f.default, bool):
+        doc += "; true or false"
+    return doc
+
+
+def dump_toml(cfg: DaemonConfig) -> str:
+    """The configuration as TOML with every key's documentation and range as comments."""
+    import textwrap
+
+    import tomli_w
+
+    def lines(obj: Any) -> list[str]:
+        out = []
+        for f in fields(obj):
+            if dataclasses.is_dataclass(getattr(obj, f.name)):
+                continue
+            for c in textwrap.wrap(key_comment(f), 96):
+                out.append(f"# {c}")
+            out.append(tomli_w.dumps({f.name: getattr(obj, f.name)}).rstrip("\n"))
+        return out
+
+    text = ["# bubble_rt daemon configuration (bubble-rt config dump)", *lines(cfg)]
+    for name, cls in sections().items():
+        if not name:
+            continue
+        doc = (cls.__doc__ or "").strip().splitlines()[0]
+        text += ["", f"# {doc}", f"[{name}]", *lines(getattr(cfg, name))]
+    return "\n".join(text) + "\n"
 
 
 def default_config() -> DaemonConfig:

@@ -12,13 +12,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "action",
         choices=["dump", "check"],
-        help="dump: print the defaults (or FILE with defaults filled in); check: validate FILE",
+        help="dump: print the defaults (or FILE with defaults filled in), each key commented with "
+        "its documentation and range; check: validate FILE",
     )
     parser.add_argument("file", nargs="?", help="a TOML configuration file")
 
 
 def run(args: argparse.Namespace) -> int:
-    from bubble_rt.config import ConfigError, DaemonConfig
+    from bubble_rt.config import ConfigError, DaemonConfig, dump_toml
 
     try:
         cfg = DaemonConfig.load(args.file) if args.file else DaemonConfig()
@@ -26,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"bubble-rt config: invalid configuration: {exc}", file=sys.stderr)
         return 2
     if args.action == "dump":
-        sys.stdout.write(cfg.to_toml())
+        sys.stdout.write(dump_toml(cfg))
     else:
         if not args.file:
             print("bubble-rt config check: give a FILE to check", file=sys.stderr)

@@ -108,6 +108,9 @@ def _set_params(d: Daemon, params: dict[str, float]) -> Any:
     if err:
         return protocol.error_reply(err)
     est = d.queue_params(params)
+    rec = d.recorder
+    if rec is not None:  # the recording keeps what its forces depend on
+        faults.write_settings(rec, d.config)
     return protocol.ok_reply(params=pb.Params(**{k: getattr(est, k) for k in protocol.PARAM_NAMES}))
 
 

@@ -28,7 +28,16 @@ def recording_path(requested: str, directory: str) -> Path:
     if requested:
         return Path(requested)
     d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ValueError(
+            f"recording.directory {directory!r} is (or is under) a file, not a folder"
+        ) from None
+    except OSError as exc:
+        raise ValueError(
+            f"recording.directory {directory!r}: cannot create: {exc.strerror or exc}"
+        ) from None
     return d / time.strftime("bubble_rt-%Y%m%d-%H%M%S.mcap", time.gmtime())
 
 
@@ -61,7 +70,16 @@ def start_recorder(
     )
     if reference:
         rec.write_reference(reference)
+    write_settings(rec, config)
     return rec
+
+
+def write_settings(rec: Any, config: Any) -> None:
+    """Record the configuration the estimate depends on (replay uses it)."""
+    from bubble_rt.io.mcap import TOPIC_SETTINGS
+    from bubble_rt.io.protocol import pb
+
+    rec.write_message(TOPIC_SETTINGS, pb.ControlReply(ok=True, config_toml=config.to_toml()))
 
 
 def stop_recorder(rec: Any, timeout: float = 1.5) -> tuple[bool, str]:

@@ -62,7 +62,10 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
             cam_reason += f" ({cam.stats.last_error})"
         if cam is not None and cam.finished.is_set():
             cam_reason = "camera source ended"
+    failing = _failing(d, now)
     if d.processor is None:
+        if failing:
+            return pb.Status.DEGRADED, failing
         reason = f"capturing reference ({len(d._collecting)}/{d.config.reference.frames})"
         if d.last_error and now - d.last_error_time < 5.0:
             reason += f"; {d.last_error}"
@@ -81,6 +84,8 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
     if bad:
         return pb.Status.DEGRADED, bad
     if d.frames_published == 0:
+        if failing:
+            return pb.Status.DEGRADED, failing
         reason = "reference captured, waiting for the first force frame"
         if d.last_error:
             reason += f"; {d.last_error}"
@@ -91,8 +96,20 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
     if reasons and now - t_deg < 1.0:
         return pb.Status.DEGRADED, "; ".join(reasons)
     if d.last_error and now - d.last_error_time < 2.0:
-        return pb.Status.DEGRADED, d.last_error
+        return pb.Status.DEGRADED, f"{d.last_error} ({sum(d.errors.values())} errors so far)"
     return pb.Status.RUNNING, ""
+
+
+#: Errors in a row before a daemon that has not published yet is "degraded", not "starting".
+FAILING_AFTER = 3
+
+
+def _failing(d: Daemon, now: float) -> str:
+    """The reason a daemon that cannot produce frames gives (keeps failing), else ""."""
+    n = sum(d.errors.values())
+    if n < FAILING_AFTER or not d.last_error or now - d.last_error_time > 5.0:
+        return ""
+    return f"cannot produce frames: {d.last_error} ({n} errors so far)"
 
 
 def status_message(d: Daemon, stopped: bool = False) -> Any:

@@ -41,10 +41,20 @@ class EstimatorProcessor:
     """The real processor: the estimation ``Pipeline`` the config describes, its two stages
     run by the daemon's two threads."""
 
-    def __init__(self, config: DaemonConfig, camera: Camera, frames: list[Frame]) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        camera: Camera,
+        frames: list[Frame],
+        mesh: Mesh | None = None,
+    ) -> None:
+        """``mesh``: an already fitted mesh (a replayed recording's), used as it is."""
         from bubble_rt.estimation.pipeline import Pipeline, capture_settings
 
-        self.pipeline = Pipeline.capture(frames, camera, **capture_settings(config, realtime=True))
+        settings = capture_settings(config, realtime=True)
+        if mesh is not None:
+            settings.update(mesh=mesh, fit=False)
+        self.pipeline = Pipeline.capture(frames, camera, **settings)
         self.mesh = self.pipeline.mesh
 
     @property
@@ -56,6 +66,10 @@ class EstimatorProcessor:
 
     def stage2(self, frame: Frame, data: Any) -> Any:
         return self.pipeline.solve(frame, data)
+
+    def cold_start(self) -> None:
+        """The next solve starts cold (no warm start from the previous frame)."""
+        self.pipeline.cold_start()
 
     def set_reference(self, frames: list[Frame]) -> None:
         from bubble_rt.estimation.deformation import Reference

@@ -18,6 +18,7 @@ the daemon always works on the newest data and its latency never builds up.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -65,6 +66,13 @@ class _Item:
     data: Any
     timings: dict[str, float] = field(default_factory=dict)
     t_stage1_end: float = 0.0
+    #: Solve this frame from a cold start (first frame of a recording).
+    cold: bool = False
+
+
+#: A fault kind is logged at most once per this many seconds (with its count so far).
+ERROR_LOG_PERIOD_S = 10.0
+log = logging.getLogger("bubble_rt.daemon")
 
 
 class DaemonError(RuntimeError):
@@ -105,6 +113,11 @@ class Daemon:
         self._ref_frames: list[Frame] = []
         self._collecting: list[Frame] = []
         self.recorder: Any = None
+        #: The fitted mesh of a replayed recording (used instead of fitting again).
+        self._recorded_mesh: Any = None
+        #: Recording just started: its first solved frame starts the solver cold, so the
+        #: recording alone determines its forces (a replay reproduces them).
+        self._cold_next = False
         self._recording_fault_counted = False
         #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
         #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
@@ -112,6 +125,7 @@ class Daemon:
         self.seq = 0
         self.frames_published = 0
         self.errors: dict[str, int] = {}
+        self._error_logged: dict[str, float] = {}
         self.last_error = ""
         self.last_error_time = 0.0
         self._latencies: deque[float] = deque(maxlen=2000)
@@ -129,9 +143,12 @@ class Daemon:
         if cfg.processing.opencv_threads > 0:
             # Read once when the C++ core loads (its first import happens below or later).
             os.environ.setdefault("OPENCV_FOR_THREADS_NUM", str(cfg.processing.opencv_threads))
+        self._open_mesh()
         if self._camera_src is None:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
+        self._use_recorded_settings(cam)
+        cfg = self.config
         if self._pressure_arg is None:
             self._pressure_arg = make_pressure_source(cfg.pressure, cam)
         self.pressure_buffer, self._pressure_src = self._pressure_arg
@@ -170,6 +187,53 @@ class Daemon:
         self._spawn(self._control_loop, "control")
         return self
 
+    def _use_recorded_settings(self, cam: Any) -> None:
+        """Replay of this project's MCAP (camera.replay_settings = "recorded"): estimate with
+        what the live run used (estimator, flow, solver and reference settings, calibration,
+        the fitted mesh), so the replay reproduces the live forces."""
+        text = getattr(cam, "recorded_settings", "")
+        mesh_msg = getattr(cam, "recorded_mesh", None)
+        if text:
+            import tomllib
+
+            from bubble_rt.config import ConfigError
+
+            try:
+                rec = DaemonConfig.from_dict(tomllib.loads(text))
+            except (ConfigError, tomllib.TOMLDecodeError) as exc:
+                log.warning("replay: the recorded settings are not usable (%s); using ours", exc)
+            else:
+                est = replace(rec.estimator, mesh=self.config.estimator.mesh)
+                self.config = replace(
+                    self.config,
+                    estimator=est,
+                    flow=rec.flow,
+                    solver=rec.solver,
+                    reference=rec.reference,
+                )
+                log.info("replay: estimating with the recording's settings")
+        if mesh_msg is not None and text:
+            from bubble_rt.mesh import Mesh
+
+            m = protocol.decode_mesh(mesh_msg)
+            self._recorded_mesh = Mesh(
+                m.vertices, m.triangles.astype(np.int32), m.boundary.astype(np.int32)
+            )
+
+    def _open_mesh(self) -> None:
+        """Load a mesh file now, so a bad one stops the start instead of every frame."""
+        from bubble_rt.mesh import PRESETS, Mesh
+
+        path = self.config.estimator.mesh
+        if path in PRESETS:
+            return
+        try:
+            Mesh.load(path)
+        except Exception as exc:
+            raise DaemonError(
+                f"estimator.mesh: cannot load {path!r} as a mesh: {type(exc).__name__}: {exc}"
+            ) from exc
+
     def _spawn(self, target: Callable[[], None], name: str) -> None:
         th = threading.Thread(target=target, name=name, daemon=True)
         th.start()
@@ -185,9 +249,16 @@ class Daemon:
         self._mid.close()
         if self._camera_src is not None:
             self._camera_src.output.close()
-            self._camera_src.stop(0.2)
-        if self._pressure_arg is not None and self._pressure_arg[1] is not None:
-            self._pressure_arg[1].stop(0.2)
+        sources = [self._camera_src] + ([self._pressure_arg[1]] if self._pressure_arg else [])
+        for src in sources:
+            if src is not None:
+                src.stop(0.0)  # signal first: they all wind down at once
+        # Join every thread (capture ones too: a frame being rendered or tracked in C++ must
+        # finish before the interpreter exits, else the C++ runtime aborts with
+        # std::terminate).
+        for src in sources:
+            if src is not None:
+                src.stop(max(0.0, deadline - time.monotonic()))
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
         for viewer in self.viewers:
@@ -202,6 +273,21 @@ class Daemon:
         except Exception:
             pass
         self._close_sockets()
+        if not self.alive_threads():
+            # Release the extension's objects (estimator, tracker) only once no thread uses them.
+            with self._proc_lock:
+                self.processor = None
+                self._patches = None
+
+    def alive_threads(self) -> list[str]:
+        """Names of the daemon's threads still running (after ``stop``: ones that did not end
+        within the shutdown timeout, e.g. busy in native code)."""
+        out = [th.name for th in self._threads if th.is_alive()]
+        sources = [self._camera_src] + ([self._pressure_arg[1]] if self._pressure_arg else [])
+        for src in sources:
+            if src is not None and src.alive:
+                out.append(f"src-{src.name}")
+        return out
 
     def _close_sockets(self) -> None:
         for name in ("pub", "ctl"):
@@ -232,11 +318,18 @@ class Daemon:
 
     # ---------------------------------------------------------------- errors
     def _error(self, kind: str, exc: BaseException | str) -> None:
+        """Count a fault of ``kind`` (status: ``error_counts``, reason); logged once, then at
+        most every ``ERROR_LOG_PERIOD_S`` per kind with the count: never a line per frame."""
         text = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
+        now = time.time()
         with self._state_lock:
-            self.errors[kind] = self.errors.get(kind, 0) + 1
+            n = self.errors[kind] = self.errors.get(kind, 0) + 1
             self.last_error = f"{kind}: {text}"
-            self.last_error_time = time.time()
+            self.last_error_time = now
+            logged = self._error_logged.get(kind, 0.0)
+            if now - logged >= ERROR_LOG_PERIOD_S:
+                self._error_logged[kind] = now
+                log.warning("%s error (%d so far): %s", kind, n, text)
 
     # ---------------------------------------------------------------- stage 1
     def _stage1_loop(self) -> None:
@@ -266,17 +359,23 @@ class Daemon:
                 continue
             t_take = time.time()
             self._last_frame_time = t_take
-            frame, reasons = pair_pressure(
-                frame, self.pressure_buffer, cfg.pressure.stale_timeout_s
-            )
+            try:
+                frame, reasons = pair_pressure(
+                    frame, self.pressure_buffer, cfg.pressure.stale_timeout_s
+                )
+            except Exception as exc:  # e.g. a pressure the frame refuses: count, never raise
+                self._error("pressure", exc)
+                continue
             if self.processor is None or self._tare_requested:
                 self._collecting.append(frame)
                 if len(self._collecting) >= k:
                     frames, self._collecting = self._collecting, []
                     self._install_reference(frames)
                 continue
+            cold = False
             if self.recorder is not None:
                 self.recorder.write_frame(frame)
+                cold, self._cold_next = self._cold_next, False
             timings = {"wait": (t_take - frame.t) * 1e3}
             t0 = time.perf_counter()
             try:
@@ -285,7 +384,7 @@ class Daemon:
                 self._error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
-            item = _Item(frame, reasons, data, timings, time.perf_counter())
+            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
             else:
@@ -294,7 +393,11 @@ class Daemon:
     def _install_reference(self, frames: list[Frame]) -> None:
         try:
             if self.processor is None:
-                proc = self._factory(self.config, self.camera, frames)
+                if self._recorded_mesh is not None and _takes_mesh(self._factory):
+                    factory: Any = self._factory
+                    proc = factory(self.config, self.camera, frames, mesh=self._recorded_mesh)
+                else:
+                    proc = self._factory(self.config, self.camera, frames)
                 mesh = proc.mesh
                 self._patches = PatchFinder(mesh)
                 self.mesh_msg = protocol.encode_mesh(
@@ -350,6 +453,8 @@ class Daemon:
             with self._proc_lock:
                 if params:
                     proc.reconfigure(params)
+                if item.cold and hasattr(proc, "cold_start"):
+                    proc.cold_start()
                 est = proc.stage2(item.frame, item.data)
             timings = dict(item.timings)
             for key, v in (getattr(est, "timings_ms", None) or {}).items():
@@ -492,7 +597,17 @@ class Daemon:
             path, self.config, self.camera, self.mesh_msg, self._ref_frames, overwrite
         )
         self._recording_fault_counted = False
+        self._cold_next = True
         self.recorder = rec
+
+
+def _takes_mesh(factory: Any) -> bool:
+    import inspect
+
+    try:
+        return "mesh" in inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def run(config: DaemonConfig, stop: threading.Event, **kwargs: Any) -> Daemon:

@@ -445,7 +445,11 @@ def restamp_reference(frames: list[Frame]) -> list[Frame]:
 
 
 def ReplayCamera(
-    path: str, realtime: bool = True, loop: bool = False, **bag_options: Any
+    path: str,
+    realtime: bool = True,
+    loop: bool = False,
+    recorded: bool = False,
+    **bag_options: Any,
 ) -> IterableCamera:
     """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
     (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps.
@@ -456,6 +460,10 @@ def ReplayCamera(
     never starts over after an error. What a damaged MCAP file lost is in
     ``stats.errors["recording"]`` / ``recording_report``. A file that is not a readable
     recording is refused at once (:class:`SourceError` with the reason).
+
+    ``recorded`` (this project's MCAP): replay what the live run solved, with what it
+    depended on: only the frames it published forces for, and ``recorded_settings`` (the
+    daemon's configuration TOML) and ``recorded_mesh`` (the fitted mesh) for the daemon to use.
     """
     import warnings
     from pathlib import Path
@@ -484,9 +492,14 @@ def ReplayCamera(
     except Exception as exc:
         raise SourceError(f"replay: cannot read {path}: {exc}") from exc
 
+    published: set[int] = getattr(rec, "published", set()) if recorded else set()
+
     def frames() -> Iterator[Any]:
         # Bags yield frames only; the project's recordings also name the frames they skip.
-        return rec.frames(faults=True) if hasattr(rec, "frames") else iter(rec)
+        out = rec.frames(faults=True) if hasattr(rec, "frames") else iter(rec)
+        if published:  # the frames the live run solved, as it solved them
+            return (f for f in out if not isinstance(f, Frame) or f.index in published)
+        return out
 
     src = IterableCamera(
         frames,
@@ -504,6 +517,8 @@ def ReplayCamera(
     # Frames are checked against the recording's camera when the file states it.
     src.camera_check = getattr(rec, "has_camera_info", True)
     src.recording_report = report  # type: ignore[attr-defined]
+    src.recorded_settings = getattr(rec, "settings_toml", "") if recorded else ""  # type: ignore[attr-defined]
+    src.recorded_mesh = getattr(rec, "mesh", None) if recorded else None  # type: ignore[attr-defined]
     if report is not None and not report.complete:
         text = report.summary()
         if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:
@@ -791,7 +806,12 @@ def make_camera_source(cfg: Any) -> CameraSource:
             arg or "demo", loop=cfg.loop, lossless=cfg.pace == "fast", prerender=cfg.sim_prerender
         )
     if kind == "replay":
-        return ReplayCamera(arg, realtime=cfg.pace == "realtime", loop=cfg.loop)
+        return ReplayCamera(
+            arg,
+            realtime=cfg.pace == "realtime",
+            loop=cfg.loop,
+            recorded=cfg.replay_settings == "recorded",
+        )
     if kind == "realsense":
         return RealSenseCamera(arg, cfg.width, cfg.height, cfg.fps)
     raise SourceError(f"unknown camera source {cfg.source!r}")

@@ -140,6 +140,14 @@ class Pipeline:
         return self.solve(frame, self.deform(frame))
 
     # ---------------------------------------------------------------- changes
+    def cold_start(self) -> None:
+        """The next solve starts as the first one did: no warm start, and the solver's
+        frame-to-frame state (force scale, rho) reset (setting the same weights again)."""
+        solver = getattr(self.estimator, "solver", None)
+        if solver is not None and hasattr(solver, "cold_start"):
+            solver.set_weights(*solver.weights)
+            solver.cold_start()
+
     def set_reference(self, reference: Reference) -> None:
         """Measure against a new untouched state (tare); the mesh stays."""
         self.reference = reference

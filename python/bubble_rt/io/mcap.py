@@ -69,6 +69,10 @@ TOPIC_WRENCH = "/bubble_rt/wrench"
 TOPIC_REF_WRENCH = "/bubble_rt/reference/wrench"
 TOPIC_FORCE = "/bubble_rt/force"
 TOPIC_STATUS = "/bubble_rt/status"
+#: What the estimate depended on besides the frames: the daemon's effective configuration
+#: (estimator, flow, solver settings and calibration, live set_params included) as a
+#: ControlReply's ``config_toml``, written when recording starts (and after a set_params).
+TOPIC_SETTINGS = "/bubble_rt/settings"
 FRAME_ID = "bubble_rt_camera"
 
 _TYPES: dict[str, Any] = {
@@ -79,6 +83,7 @@ _TYPES: dict[str, Any] = {
     "bubble_rt.v1.WrenchSample": pb.WrenchSample,
     "bubble_rt.v1.ForceFrame": pb.ForceFrame,
     "bubble_rt.v1.Status": pb.Status,
+    "bubble_rt.v1.ControlReply": pb.ControlReply,
 }
 
 
@@ -105,6 +110,9 @@ def open_new_file(path: str | Path, overwrite: bool = False) -> Any:
     """
     p = Path(path)
     if not p.parent.is_dir():
+        what = _under_a_file(p.parent)
+        if what is not None:
+            raise RecordingPathError(f"{p}: {what} is a file, not a folder")
         raise RecordingPathError(f"{p}: folder {p.parent} does not exist")
     try:
         st = os.stat(p)
@@ -138,6 +146,14 @@ def open_new_file(path: str | Path, overwrite: bool = False) -> Any:
     except BaseException:
         os.close(fd)
         raise
+
+
+def _under_a_file(folder: Path) -> Path | None:
+    """The existing non-folder among ``folder`` and its parents (None if there is none)."""
+    for q in (folder, *folder.parents):
+        if q.exists():
+            return None if q.is_dir() else q
+    return None
 
 
 def _kind(mode: int) -> str:
@@ -513,6 +529,10 @@ class McapRecording:
         self.path = Path(path)
         self.camera = Camera.d405()
         self.mesh: Any | None = None
+        #: The daemon's configuration (TOML) when recording started ("" if not recorded).
+        self.settings_toml = ""
+        #: Frame indices the daemon published forces for (the frames it solved).
+        self.published: set[int] = set()
         self._reference: list[Frame] = []
         self._n = 0
         self.report = ReadReport(str(self.path))
@@ -530,6 +550,10 @@ class McapRecording:
                 self.mesh = msg
             elif topic == TOPIC_PRESSURE:
                 self._n += 1
+            elif topic == TOPIC_SETTINGS and not self.settings_toml:
+                self.settings_toml = msg.config_toml
+            elif topic == TOPIC_FORCE:
+                self.published.add(int(msg.frame_index))
         self.has_camera_info = has_camera_info
         self.frames_indexed = self.report.topic_indexed.get(TOPIC_PRESSURE)
         if self._n == 0 and self.report.topic_messages.get(TOPIC_REF_PRESSURE, 0) == 0:
