@@ -375,7 +375,8 @@ class Daemon:
             cold = False
             if self.recorder is not None:
                 self.recorder.write_frame(frame)
-                cold, self._cold_next = self._cold_next, False
+                # Cleared by the solve that honours it (this frame may be dropped unsolved).
+                cold = self._cold_next
             timings = {"wait": (t_take - frame.t) * 1e3}
             t0 = time.perf_counter()
             try:
@@ -453,8 +454,10 @@ class Daemon:
             with self._proc_lock:
                 if params:
                     proc.reconfigure(params)
-                if item.cold and hasattr(proc, "cold_start"):
-                    proc.cold_start()
+                if item.cold and self._cold_next:
+                    self._cold_next = False
+                    if hasattr(proc, "cold_start"):
+                        proc.cold_start()
                 est = proc.stage2(item.frame, item.data)
             timings = dict(item.timings)
             for key, v in (getattr(est, "timings_ms", None) or {}).items():
