@@ -68,6 +68,9 @@ class _Item:
     t_stage1_end: float = 0.0
     #: Solve this frame from a cold start (first frame of a recording).
     cold: bool = False
+    #: The recorder this frame's input was written to: only its forces go into that file, so
+    #: a recording started mid-run holds no force whose input it lacks (replay reproduces it).
+    recorder: Any = None
 
 
 #: A fault kind is logged at most once per this many seconds (with its count so far).
@@ -373,8 +376,9 @@ class Daemon:
                     self._install_reference(frames)
                 continue
             cold = False
-            if self.recorder is not None:
-                self.recorder.write_frame(frame)
+            recorder = self.recorder
+            if recorder is not None:
+                recorder.write_frame(frame)
                 # Cleared by the solve that honours it (this frame may be dropped unsolved).
                 cold = self._cold_next
             timings = {"wait": (t_take - frame.t) * 1e3}
@@ -385,7 +389,7 @@ class Daemon:
                 self._error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
-            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold)
+            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
             else:
@@ -512,7 +516,7 @@ class Daemon:
         self._publish_times.append(now)
         if reasons:
             self._last_degraded = (now, reasons)
-        rec = self.recorder
+        rec = self.recorder if item.recorder is self.recorder else None
         if rec is not None:
             rec.write_force(msg)
         for viewer in self.viewers:
