@@ -28,6 +28,7 @@ from bubble_rt.estimation.membrane import (
     Material,
     MembraneModel,
     _triangle_gradients,
+    coordinatewise_stiffness,
     inflation_stiffness,
 )
 from bubble_rt.estimation.solver import GroupLassoSolver
@@ -98,16 +99,7 @@ def anisotropic_geometric(mesh: Mesh, p0: float, reg: float = 1e-3) -> sp.csr_ma
     s = s.reshape(nt, 3)
     S[:, 0, 0], S[:, 1, 1], S[:, 0, 1], S[:, 1, 0] = s[:, 0], s[:, 1], s[:, 2], s[:, 2]
     L = area[:, None, None] * np.einsum("tka,tkl,tlb->tab", G, S, G)
-    rows, cols, vals = [], [], []
-    for a in range(3):
-        for b in range(3):
-            for d in range(3):
-                rows.append(3 * T[:, a] + d)
-                cols.append(3 * T[:, b] + d)
-                vals.append(L[:, a, b])
-    return sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
-    )
+    return coordinatewise_stiffness(T, L, n)
 
 
 def model_for(mesh: Mesh, E: float, p0: float, kind: str) -> MembraneModel:
@@ -128,17 +120,7 @@ def _geometric_only(mesh: Mesh, tension: float) -> sp.csr_matrix:
     V, T = mesh.vertices, mesh.triangles
     area, _, G = _triangle_gradients(V, T)
     L = (area * tension)[:, None, None] * np.einsum("tka,tkb->tab", G, G)
-    rows, cols, vals = [], [], []
-    for a in range(3):
-        for b in range(3):
-            for d in range(3):
-                rows.append(3 * T[:, a] + d)
-                cols.append(3 * T[:, b] + d)
-                vals.append(L[:, a, b])
-    n = len(V)
-    return sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
-    )
+    return coordinatewise_stiffness(T, L, len(V))
 
 
 class Refit:

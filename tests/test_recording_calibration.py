@@ -233,13 +233,11 @@ def test_calibration_on_punyo_recordings_recovers_truth_parameters_and_rotation(
     assert angle < 0.5 * rc.rotation_angle_deg(np.eye(3), R_TRUE)
 
 
-def test_calibrate_command_on_mcap_recordings_with_given_rotation(sim, tmp_path, capsys):
+def _calibrate_given_rotation(paths: list, tmp_path, capsys) -> tuple[str, str, dict[str, float]]:
+    """`bubble-rt calibrate --recording ...` with the true rotation given: (stdout, the written
+    TOML's text, its parameters named as the truth calibration names them)."""
     from bubble_rt.cli import main
 
-    paths = []
-    for i, t in enumerate(sim.trajs):
-        fr = _recording_frames(t)
-        paths.append(write_mcap(tmp_path / f"rec-{i}.mcap", fr[N_REF:], fr[:N_REF], t.camera))
     wcfg = tmp_path / "wrench.toml"
     rows = ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]" for r in R_TRUE)
     wcfg.write_text(f"[wrench]\nrotation = [{rows}]\nreference_frames = {N_REF}\n")
@@ -249,20 +247,28 @@ def test_calibrate_command_on_mcap_recordings_with_given_rotation(sim, tmp_path,
     for p in paths:
         argv += ["--recording", str(p)]
     assert main(argv) == 0
-    text = capsys.readouterr().out
+    text = out.read_text()
+    est = tomllib.loads(text)["estimator"]
+    return (
+        capsys.readouterr().out,
+        text,
+        {"E": est["youngs_modulus"], "k_f": est["k_f"], "k_u": est["k_u"]},
+    )
+
+
+def test_calibrate_command_on_mcap_recordings_with_given_rotation(sim, tmp_path, capsys):
+    paths = []
+    for i, t in enumerate(sim.trajs):
+        fr = _recording_frames(t)
+        paths.append(write_mcap(tmp_path / f"rec-{i}.mcap", fr[N_REF:], fr[:N_REF], t.camera))
+    text, toml_text, got = _calibrate_given_rotation(paths, tmp_path, capsys)
     assert f"{len(paths)} recordings, {len(paths) * N_FRAMES} frames" in text
     assert "rotation, given" in text
-    doc = tomllib.loads(out.read_text())
-    assert set(doc) == {"estimator"}  # the same TOML `calibrate` writes on simulated data
-    got = {
-        "E": doc["estimator"]["youngs_modulus"],
-        "k_f": doc["estimator"]["k_f"],
-        "k_u": doc["estimator"]["k_u"],
-    }
+    assert set(tomllib.loads(toml_text)) == {"estimator"}  # the TOML `calibrate` writes on sim data
     rel = _rel(got, sim.truth.params)
     print(f"given rotation: parameters vs truth calibration {rel}")
     assert all(abs(v) < GIVEN_REL_TOL for v in rel.values()), rel
-    header = out.read_text().split("[estimator]")[0]
+    header = toml_text.split("[estimator]")[0]
     assert "rotation_ft_to_mesh" in header and "# rotation_fitted: false" in header
 
 
@@ -277,7 +283,6 @@ def test_calibrate_command_names_a_recording_it_cannot_open(tmp_path, capsys):
 def test_calibrate_command_on_ros2_bags_with_given_rotation(sim, tmp_path, capsys):
     """A ROS 2 bag with a WrenchStamped topic calibrates like the project's own recordings
     (bags are one more layout behind `open_recording`)."""
-    from bubble_rt.cli import main
     from bubble_rt.io.rosbag import write_bag
 
     paths = []
@@ -286,18 +291,8 @@ def test_calibrate_command_on_ros2_bags_with_given_rotation(sim, tmp_path, capsy
         bag = tmp_path / f"bag-{i}"
         write_bag(bag, _recording_frames(t), t.camera, depth_encoding="32FC1", tf=True)
         paths.append(bag)
-    wcfg = tmp_path / "wrench.toml"
-    rows = ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]" for r in R_TRUE)
-    wcfg.write_text(f"[wrench]\nrotation = [{rows}]\nreference_frames = {N_REF}\n")
-    out = tmp_path / "calib.toml"
-    argv = ["calibrate", "--out", str(out), "--mesh", MESH, "--max-evals", str(MAX_EVALS)]
-    argv += ["--wrench-config", str(wcfg), "--workers", "1", "--no-progress"]
-    for p in paths:
-        argv += ["--recording", str(p)]
-    assert main(argv) == 0
-    assert f"{len(paths)} recordings, {len(paths) * N_FRAMES} frames" in capsys.readouterr().out
-    doc = tomllib.loads(out.read_text())["estimator"]
-    got = {"E": doc["youngs_modulus"], "k_f": doc["k_f"], "k_u": doc["k_u"]}
+    text, _, got = _calibrate_given_rotation(paths, tmp_path, capsys)
+    assert f"{len(paths)} recordings, {len(paths) * N_FRAMES} frames" in text
     rel = _rel(got, sim.truth.params)
     print(f"bags, given rotation: parameters vs truth calibration {rel}")
     assert all(abs(v) < FITTED_REL_TOL for v in rel.values()), rel

@@ -93,6 +93,22 @@ def inflation_tension(mesh: Mesh, gauge_pressure_pa: float) -> float:
     return float(gauge_pressure_pa) * float((g * b).sum() / (g * g).sum())
 
 
+def coordinatewise_stiffness(T: NDArray, blocks: NDArray, n_nodes: int) -> sp.csr_matrix:
+    """Per-triangle node-node blocks ``blocks`` (T x 3 x 3, N/m) acting on each coordinate
+    alike (``blocks (x) I_3``) summed into a 3N x 3N stiffness (node-major dofs, scipy CSR)."""
+    rows, cols, vals = [], [], []
+    for a in range(3):
+        for b in range(3):
+            for d in range(3):
+                rows.append(3 * T[:, a] + d)
+                cols.append(3 * T[:, b] + d)
+                vals.append(blocks[:, a, b])
+    shape = (3 * n_nodes, 3 * n_nodes)
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape
+    )
+
+
 def inflation_stiffness(mesh: Mesh, gauge_pressure_pa: float) -> tuple[sp.csr_matrix, float]:
     """(K_geometric - K_load, T0): the inflation terms of the linearised membrane (3N x 3N,
     N/m, scipy CSR) and the tension T0 (N/m) from :func:`inflation_tension`."""
@@ -104,12 +120,6 @@ def inflation_stiffness(mesh: Mesh, gauge_pressure_pa: float) -> tuple[sp.csr_ma
     area, _, G = _triangle_gradients(V, T)
     lap = (area * tension)[:, None, None] * np.einsum("tka,tkb->tab", G, G)  # T x 3 x 3
     rows, cols, vals = [], [], []
-    for a in range(3):
-        for b in range(3):
-            for d in range(3):
-                rows.append(3 * T[:, a] + d)
-                cols.append(3 * T[:, b] + d)
-                vals.append(lap[:, a, b])
     # Load stiffness: the nodal force of p0 on a triangle is p0 (x1 - x0) x (x2 - x0) / 6 on
     # each corner; its derivative by x_k is p0 / 6 [x_{k+2} - x_{k+1}]_x. Subtracted.
     X = [V[T[:, m]] for m in range(3)]
@@ -125,10 +135,10 @@ def inflation_stiffness(mesh: Mesh, gauge_pressure_pa: float) -> tuple[sp.csr_ma
                     rows.append(3 * T[:, j] + r)
                     cols.append(3 * T[:, k] + c)
                     vals.append(-(p0 / 6.0) * skew[:, r, c])
-    dK = sp.csr_matrix(
+    load = sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n)
     )
-    return dK, tension
+    return coordinatewise_stiffness(T, lap, n) + load, tension
 
 
 class MembraneModel:

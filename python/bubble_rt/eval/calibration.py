@@ -132,18 +132,22 @@ class ChunkTask:
 _WORKER_ESTIMATORS: dict[str, tuple[float, Any]] = {}
 
 
+def worker_estimator(
+    token: str, mesh: Any, params: dict[str, float], factory: Callable[[Any, dict[str, float]], Any]
+) -> Any:
+    """This worker's estimator for ``token`` at ``params``: kept between loss evaluations and
+    reconfigured in place; rebuilt (``factory``) when E changes, since that refactors K."""
+    cached = _WORKER_ESTIMATORS.get(token)
+    if cached is not None and cached[0] == params["E"] and _reconfigure(cached[1], params):
+        return cached[1]
+    est = factory(mesh, params)
+    _WORKER_ESTIMATORS[token] = (params["E"], est)
+    return est
+
+
 def chunk_loss(task: ChunkTask) -> list[float]:
     """Per-frame losses of one chunk (run in a worker)."""
-    cached = _WORKER_ESTIMATORS.get(task.token)
-    if (
-        cached is not None
-        and cached[0] == task.params["E"]
-        and _reconfigure(cached[1], task.params)
-    ):
-        est = cached[1]
-    else:
-        est = task.factory(task.mesh, task.params)
-        _WORKER_ESTIMATORS[task.token] = (task.params["E"], est)
+    est = worker_estimator(task.token, task.mesh, task.params, task.factory)
     areas = task.mesh.lumped_areas()
     out = []
     for fr in task.frames:

@@ -46,16 +46,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bubble_rt.eval import FanOut, lumped_areas
+from bubble_rt.eval import FanOut
 from bubble_rt.eval.calibration import (
-    _WORKER_ESTIMATORS,
     CalibrationResult,
     LossWeights,
-    _reconfigure,
     _sigmoid,
     calibrate,
     contact_threshold,
     fem_factory,
+    worker_estimator,
 )
 
 
@@ -270,17 +269,8 @@ class OutputTask:
 
 def chunk_outputs(task: OutputTask) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(net forces K x 3, contact terms K; NaN where no contact truth) of one chunk."""
-    cached = _WORKER_ESTIMATORS.get(task.token)
-    if (
-        cached is not None
-        and cached[0] == task.params["E"]
-        and _reconfigure(cached[1], task.params)
-    ):
-        est = cached[1]
-    else:
-        est = task.factory(task.mesh, task.params)
-        _WORKER_ESTIMATORS[task.token] = (task.params["E"], est)
-    areas = lumped_areas(task.mesh.vertices, task.mesh.triangles)
+    est = worker_estimator(task.token, task.mesh, task.params, task.factory)
+    areas = task.mesh.lumped_areas()
     forces = np.zeros((len(task.frames), 3))
     contact = np.full(len(task.frames), np.nan)
     for k, fr in enumerate(task.frames):
