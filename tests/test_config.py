@@ -148,4 +148,41 @@ def test_estimator_section_defaults_are_the_estimators():
     section, est = DaemonConfig().estimator, EstimatorConfig()
     for key, (name, sub) in CONFIG_KEYS.items():
         value = getattr(est, name) if sub is None else getattr(getattr(est, name), sub)
+        if key == "ambient_pa":
+            # 0 in the file means "the sensor profile's"; on simulated data that is the default.
+            assert section.ambient_pa == 0.0
+            assert section.sensor_profile("sim").ambient_pa == value
+            continue
         assert getattr(section, key) == value, key
+
+
+def test_profile_follows_the_data_layout_unless_named():
+    """Punyo recordings, ROS 2 bags and RealSense cameras are Punyo hardware; the rest is the
+    simulator's bubble; a named profile wins, and an explicit ambient pressure wins over both."""
+    from bubble_rt.config import DaemonConfig
+    from bubble_rt.estimation.pipeline import capture_settings
+    from bubble_rt.sensor import PUNYO, SIM
+
+    section = DaemonConfig().estimator
+    for layout in ("punyo", "rosbag", "realsense"):
+        assert section.sensor_profile(layout) is PUNYO
+    for layout in ("sim", "png", "mcap", ""):
+        assert section.sensor_profile(layout) is SIM
+    named = DaemonConfig().with_overrides(**{"estimator.profile": "sim"})
+    assert named.estimator.sensor_profile("punyo") is SIM
+    assert PUNYO.ambient_pa != SIM.ambient_pa
+    ambient = {
+        layout: capture_settings(DaemonConfig(), realtime=False, layout=layout)["config"].ambient_pa
+        for layout in ("punyo", "sim")
+    }
+    assert ambient == {"punyo": PUNYO.ambient_pa, "sim": SIM.ambient_pa}
+    pinned = DaemonConfig().with_overrides(**{"estimator.ambient_pa": 99000.0})
+    assert capture_settings(pinned, realtime=False, layout="punyo")["config"].ambient_pa == 99000.0
+
+
+@pytest.mark.parametrize("value", [130_000.0, -5.0])
+def test_ambient_pressure_out_of_range_names_the_key(value):
+    from bubble_rt.config import ConfigError, DaemonConfig
+
+    with pytest.raises(ConfigError, match="estimator.ambient_pa"):
+        DaemonConfig().with_overrides(**{"estimator.ambient_pa": value})

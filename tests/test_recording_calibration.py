@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -47,6 +48,10 @@ GIVEN_REL_TOL = 1e-3
 #: the rotation fitted: each parameter within 15 % of the truth calibration's (measured
 #: E -2.4 %, k_f -6.7 %, k_u -8.3 %) ...
 FITTED_REL_TOL = 0.15
+#: k_u, the flattest direction of the loss, within 25 % (measured -21 % with the estimators
+#: linearised about each reference's pressure; at those parameters the truth calibration's
+#: own loss is 0.6 % lower than at its 40-evaluation optimum) ...
+K_U_REL_TOL = 0.25
 #: ... and the rotation within 10 degrees of the true one (measured 7.2 degrees; the rest is
 #: the estimator's own direction error: the rotation taking the true net forces onto the
 #: estimated ones at the truth-calibrated parameters is itself several degrees).
@@ -84,9 +89,8 @@ def sim() -> SimpleNamespace:
     problems = []
     for t in trajs:
         mesh = estimator_mesh(MESH, t)
-        tracker = DeformationTracker(
-            mesh, t.camera, Reference.capture(t.reference_frames), FlowSettings()
-        )
+        reference = Reference.capture(t.reference_frames)
+        tracker = DeformationTracker(mesh, t.camera, reference, FlowSettings())
         frames = []
         for f in t.frames:
             d = tracker.track(f)
@@ -98,7 +102,13 @@ def sim() -> SimpleNamespace:
                     np.asarray(f.truth.contact_mask(mesh), bool),
                 )
             )
-        problems.append(cal.CalibrationProblem(mesh, frames, weights=cal.LossWeights(lambda2=0.0)))
+        # Linearised about the reference's pressure, as the recordings' estimators are.
+        factory = partial(rc.fem_at_reference, reference.pressure_pa)
+        problems.append(
+            cal.CalibrationProblem(
+                mesh, frames, factory=factory, weights=cal.LossWeights(lambda2=0.0)
+            )
+        )
     truth = cal.calibrate(_Sum(problems), max_evals=MAX_EVALS)
     return SimpleNamespace(trajs=trajs, truth=truth, problems=problems)
 
@@ -220,12 +230,17 @@ def test_calibration_on_punyo_recordings_recovers_truth_parameters_and_rotation(
         )
     for s in sets:
         np.testing.assert_allclose(s.bias, BIAS, atol=1e-9)
-    out = rc.calibrate_recordings(rc.RecordingProblem(sets), max_evals=MAX_EVALS)
+    out = rc.calibrate_recordings(rc.RecordingProblem(sets), max_evals=MAX_EVALS, fit=cal.PARAMS)
     rel = _rel(out.result.params, sim.truth.params)
     angle = rc.rotation_angle_deg(out.rotation, R_TRUE)
     print(f"fitted rotation: parameters vs truth calibration {rel}, rotation error {angle:.2f} deg")
+
     assert out.rotation_fitted
-    assert all(abs(v) < FITTED_REL_TOL for v in rel.values()), rel
+    assert abs(rel["E"]) < FITTED_REL_TOL and abs(rel["k_f"]) < FITTED_REL_TOL, rel
+    assert abs(rel["k_u"]) < K_U_REL_TOL, rel
+    # Where they differ, the recovered parameters fit the truth itself no worse (1 %).
+    truth_loss = _Sum(sim.problems).loss(sim.truth.params)
+    assert _Sum(sim.problems).loss(out.result.params) <= 1.01 * truth_loss
     assert angle < ROTATION_TOL_DEG
     # The loss at the recovered parameters is no worse than at the truth's (it is minimised).
     assert out.result.loss <= rc.RecordingProblem(sets).loss(sim.truth.params) + 1e-9
@@ -243,7 +258,7 @@ def _calibrate_given_rotation(paths: list, tmp_path, capsys) -> tuple[str, str, 
     wcfg.write_text(f"[wrench]\nrotation = [{rows}]\nreference_frames = {N_REF}\n")
     out = tmp_path / "calib.toml"
     argv = ["calibrate", "--out", str(out), "--mesh", MESH, "--max-evals", str(MAX_EVALS)]
-    argv += ["--wrench-config", str(wcfg), "--workers", "1", "--no-progress"]
+    argv += ["--wrench-config", str(wcfg), "--workers", "1", "--no-progress", "--fit", "E,k_f,k_u"]
     for p in paths:
         argv += ["--recording", str(p)]
     assert main(argv) == 0
@@ -295,4 +310,52 @@ def test_calibrate_command_on_ros2_bags_with_given_rotation(sim, tmp_path, capsy
     assert f"{len(paths)} recordings, {len(paths) * N_FRAMES} frames" in text
     rel = _rel(got, sim.truth.params)
     print(f"bags, given rotation: parameters vs truth calibration {rel}")
-    assert all(abs(v) < FITTED_REL_TOL for v in rel.values()), rel
+    assert abs(rel["E"]) < FITTED_REL_TOL and abs(rel["k_f"]) < FITTED_REL_TOL, rel
+    assert abs(rel["k_u"]) < K_U_REL_TOL, rel
+
+
+#: The simulated bubble's rest gauge pressure (Pa) and the ambient its pressure readings are
+#: shifted to: the readings then say 2500 Pa of rest gauge pressure at the default ambient, so
+#: an estimator assuming it holds half the true rest tension.
+SIM_GAUGE_PA = 5000.0
+SHIFTED_AMBIENT_PA = 101325.0 - 2500.0
+#: The ambient pressure recovered within this (Pa): 10 % of the rest gauge pressure (measured
+#: when written: see the test's print).
+AMBIENT_TOL_PA = 0.1 * SIM_GAUGE_PA
+
+
+def test_calibration_recovers_a_rest_tension_twice_what_the_readings_imply(sim, tmp_path):
+    """A bubble whose membrane holds twice the rest tension the defaults assume (its readings
+    imply half its true rest gauge pressure): `calibrate --recording --fit ambient_pa` finds
+    the ambient pressure that restores it (measured: within 4 Pa), and the force scale."""
+    sets = []
+    for i, t in enumerate(sim.trajs):
+        frames = [
+            replace(f, pressure_pa=f.pressure_pa - (101325.0 - SHIFTED_AMBIENT_PA))
+            for f in _recording_frames(t)
+        ]
+        path = write_punyo(tmp_path / f"shifted-{i}", frames, t.camera)
+        sets.append(
+            rc.load_recording(
+                path,
+                mesh=MESH,
+                n_reference=N_REF,
+                pose=t.camera.pose_matrix,
+                centre_from_data=False,
+            )
+        )
+    problem = rc.RecordingProblem(sets, rotation=R_TRUE)
+    params = {**sim.truth.params}
+    before = problem.evaluate({**params, "ambient_pa": 101325.0})
+    out = rc.calibrate_recordings(problem, initial=params, max_evals=MAX_EVALS, fit=("ambient_pa",))
+    ambient = out.result.params["ambient_pa"]
+    print(f"ambient recovered {ambient:.0f} Pa (true {SHIFTED_AMBIENT_PA:.0f})")
+    assert abs(ambient - SHIFTED_AMBIENT_PA) < AMBIENT_TOL_PA
+    # The force scale comes back (the simulator's dents lean less on the rest tension than
+    # the real press does: halving it reads about 9 % less here, half on the real press).
+    truth = np.linalg.norm(before.wrenches, axis=1)
+    firm = truth >= 1.0
+    ratio = lambda F: float(np.median(np.linalg.norm(F, axis=1)[firm] / truth[firm]))  # noqa: E731
+    r0, r1 = ratio(before.net_forces), ratio(out.final.net_forces)
+    print(f"median |f_est| / |f_true|: {r0:.3f} at the default ambient, {r1:.3f} calibrated")
+    assert r0 < 0.95 and abs(r1 - 1.0) < 0.5 * abs(r0 - 1.0)

@@ -22,6 +22,7 @@ from typing import Any
 
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
 from bubble_rt.estimation.registry import estimator_kinds
+from bubble_rt.sensor import PROFILES, SIM, SensorProfile, profile_for_layout
 
 
 class ConfigError(ValueError):
@@ -302,11 +303,27 @@ class EstimatorSection:
     fit_mesh: bool = option(True, "fit the mesh onto the membrane seen in the reference frames")
     k_f: float = option(0.1, "force sparsity weight", lo=1e-4, hi=1e3, unit="1/N")
     k_u: float = option(537592.0, "displacement fit weight", lo=1e2, hi=1e10, unit="1/m^2")
-    youngs_modulus: float = option(0.66e6, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa")
-    poisson: float = option(0.5, "membrane Poisson ratio", lo=0.0, hi=0.5)
-    thickness: float = option(0.65e-3, "membrane thickness", lo=1e-5, hi=1e-2, unit="m")
+    youngs_modulus: float = option(
+        SIM.youngs_modulus, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa"
+    )
+    poisson: float = option(SIM.poisson, "membrane Poisson ratio", lo=0.0, hi=0.5)
+    thickness: float = option(SIM.thickness, "membrane thickness", lo=1e-5, hi=1e-2, unit="m")
     k_const: float = option(2000.0, "contact threshold: constant term", lo=0.0, hi=1e6, unit="Pa")
     k_linear: float = option(2.0, "contact threshold: factor on the mean pressure", lo=0.0, hi=1e3)
+    profile: str = option(
+        "auto",
+        "sensor profile giving the physical constants (bubble_rt.sensor): auto = punyo for "
+        "Punyo recordings, ROS 2 bags and RealSense cameras, sim otherwise",
+        choices=("auto", *PROFILES),
+    )
+    ambient_pa: float = option(
+        0.0,
+        "ambient pressure, subtracted from absolute pressure readings; it sets the rest "
+        "tension (0: the sensor profile's)",
+        lo=0.0,
+        hi=120e3,
+        unit="Pa",
+    )
 
     def __post_init__(self) -> None:
         from bubble_rt.mesh import PRESETS
@@ -321,6 +338,10 @@ class EstimatorSection:
                 f"{self.mesh!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file",
             )
             _check(p.is_file(), "mesh", f"{self.mesh!r} is not a file")
+
+    def sensor_profile(self, layout: str) -> SensorProfile:
+        """The profile in use for data of ``layout`` (``auto`` resolves by layout)."""
+        return profile_for_layout(layout) if self.profile == "auto" else PROFILES[self.profile]
 
 
 @dataclass(frozen=True)

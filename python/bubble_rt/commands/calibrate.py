@@ -53,6 +53,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "reports the reaction), reference_frames = N",
     )
     g.add_argument("--max-frames", type=int, default=0, help="scored frames per recording (0: all)")
+    g.add_argument(
+        "--fit",
+        default="E,k_f,k_u,ambient_pa",
+        help="parameters to fit, comma-separated, of E, k_f, k_u, ambient_pa (the ambient "
+        "pressure sets the rest tension); the others keep the estimator's defaults",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -130,15 +136,20 @@ def run_recordings(args: argparse.Namespace) -> int:
         f"({problem.contact_frames} with contact truth), {n_ref} reference frames each"
     )
     max_evals = min(args.max_evals, 25) if args.quick else args.max_evals
-    with FanOut(workers=args.workers, scheduler=args.scheduler) as fan:
-        out = rc.calibrate_recordings(
-            problem,
-            method=args.method,
-            max_evals=max_evals,
-            bound=args.bound,
-            fan=fan,
-            progress=not args.no_progress,
-        )
+    try:
+        with FanOut(workers=args.workers, scheduler=args.scheduler) as fan:
+            out = rc.calibrate_recordings(
+                problem,
+                method=args.method,
+                max_evals=max_evals,
+                bound=args.bound,
+                fan=fan,
+                progress=not args.no_progress,
+                fit=[k.strip() for k in args.fit.split(",") if k.strip()],
+            )
+    except rc.WrenchCalibrationError as exc:
+        print(f"bubble-rt calibrate: {exc}", file=sys.stderr)
+        return 2
     res = out.result
     cal.write_config(
         args.out,
@@ -153,7 +164,7 @@ def run_recordings(args: argparse.Namespace) -> int:
         },
     )
     print("| parameter | default | calibrated |\n|---|---|---|")
-    for k in cal.PARAMS:
+    for k in res.params:
         print(f"| {k} | {res.initial_params[k]:.6g} | {res.params[k]:.6g} |")
     how = "fitted (Kabsch)" if out.rotation_fitted else "given"
     print(f"\nF/T -> mesh rotation, {how}:")

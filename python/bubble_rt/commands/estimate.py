@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
-    settings = capture_settings(cfg, realtime=False)
+    settings = capture_settings(cfg, realtime=False, layout=rec.layout)
     preset = cfg.estimator.mesh in PRESET_NODES
     settings["fit"] = settings["fit"] and preset
     estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
@@ -188,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
         "flow": {"method": settings["flow"].method, "scale": settings["flow"].scale},
         "reference_frames": ref_idx,
         "reference_pressure_pa": reference.pressure_pa,
+        "ambient_pa": settings["config"].ambient_pa,
         "frames": frames_out,
     }
     if bag is not None:

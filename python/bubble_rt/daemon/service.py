@@ -151,6 +151,7 @@ class Daemon:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
         self._use_recorded_settings(cam)
+        self._resolve_profile(cam)
         cfg = self.config
         if self._pressure_arg is None:
             self._pressure_arg = make_pressure_source(cfg.pressure, cam)
@@ -394,6 +395,15 @@ class Daemon:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
             else:
                 self._finish(item)
+
+    def _resolve_profile(self, cam: Any) -> None:
+        """Write the sensor profile's ambient pressure into the configuration (unless it gives
+        one), so that status, recordings and replays carry the value in use."""
+        est = self.config.estimator
+        if not est.ambient_pa:
+            prof = est.sensor_profile(getattr(cam, "layout", "sim"))
+            log.info("sensor profile %s: ambient pressure %.0f Pa", prof.name, prof.ambient_pa)
+            self.config = replace(self.config, estimator=replace(est, ambient_pa=prof.ambient_pa))
 
     def _install_reference(self, frames: list[Frame]) -> None:
         try:

@@ -516,6 +516,7 @@ def ReplayCamera(
     src.restart_on_error = False
     # Frames are checked against the recording's camera when the file states it.
     src.camera_check = getattr(rec, "has_camera_info", True)
+    src.layout = getattr(rec, "layout", "sim")  # type: ignore[attr-defined]
     src.recording_report = report  # type: ignore[attr-defined]
     src.recorded_settings = getattr(rec, "settings_toml", "") if recorded else ""  # type: ignore[attr-defined]
     src.recorded_mesh = getattr(rec, "mesh", None) if recorded else None  # type: ignore[attr-defined]
@@ -536,6 +537,7 @@ class RealSenseCamera(CameraSource):
     """
 
     name = "realsense"
+    layout = "realsense"  # Punyo hardware: bubble_rt.sensor picks the Punyo profile
     retry_s = 1.0
 
     def __init__(

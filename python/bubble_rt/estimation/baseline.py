@@ -36,9 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from bubble_rt.estimation.estimator import ABSOLUTE_PRESSURE_MIN
 from bubble_rt.estimation.solver import SolverInfo
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
+from bubble_rt.sensor import STANDARD_ATMOSPHERE_PA
 
 __all__ = [
     "FrictionlessSettings",
@@ -48,7 +50,7 @@ __all__ = [
     "DomeFit",
 ]
 
-ATMOSPHERIC_PA = 101325.0
+ATMOSPHERIC_PA = STANDARD_ATMOSPHERE_PA
 
 
 @dataclass(frozen=True)
@@ -59,9 +61,10 @@ class FrictionlessSettings:
         T0: membrane tension (N/m); None derives it as p0 R / 2 from the rest gauge pressure
             and the dome fitted to the mesh.
         rest_gauge_pa: rest gauge pressure p0 (Pa); None takes the reference pressure, minus
-            ``atmospheric_pa`` when it looks absolute (> 20 kPa). Falls back to 2600 Pa
-            (Kuppuswamy's value) with a warning when that is not positive.
-        atmospheric_pa: ambient pressure (Pa) for gauge <-> absolute.
+            the ambient pressure when it looks absolute (as the FEM estimator does). Falls
+            back to 2600 Pa (Kuppuswamy's value) with a warning when that is not positive.
+        atmospheric_pa: ambient pressure (Pa) for gauge <-> absolute; None: the estimator
+            configuration's ``ambient_pa`` (the sensor profile's), else the standard one.
         chamber_depth: depth (m) of the air chamber behind the rim plane; the enclosed volume
             V0 = dome volume + footprint area * chamber_depth (None of ``chamber_volume``).
         chamber_volume: V0 (m^3) directly; overrides ``chamber_depth``.
@@ -81,7 +84,7 @@ class FrictionlessSettings:
 
     T0: float | None = None
     rest_gauge_pa: float | None = None
-    atmospheric_pa: float = ATMOSPHERIC_PA
+    atmospheric_pa: float | None = None
     chamber_depth: float = 0.075
     chamber_volume: float | None = None
     use_measured_pressure: bool = False
@@ -208,10 +211,13 @@ class FrictionlessEstimator:
 
         # Membrane and gas constants.
         self.dome = dome = fit_dome(V, T, self.boundary)
+        ambient = s.atmospheric_pa
+        if ambient is None:
+            ambient = float(getattr(config, "ambient_pa", ATMOSPHERIC_PA))
         p0 = s.rest_gauge_pa
         if p0 is None:
             pr = self.reference_pressure_pa
-            p0 = pr - s.atmospheric_pa if pr > 20e3 else pr
+            p0 = pr - ambient if pr > ABSOLUTE_PRESSURE_MIN else pr
         if not p0 > 0 and s.T0 is None:
             warnings.warn(
                 f"rest gauge pressure {p0} Pa is not positive; using 2600 Pa for T0",
@@ -220,7 +226,7 @@ class FrictionlessEstimator:
             p0 = 2600.0
         self.rest_gauge_pa = float(p0)
         self.T0 = float(s.T0) if s.T0 is not None else 0.5 * p0 * dome.radius
-        self.P0 = self.rest_gauge_pa + s.atmospheric_pa
+        self.P0 = self.rest_gauge_pa + ambient
         self.V0 = (
             float(s.chamber_volume)
             if s.chamber_volume is not None

@@ -34,6 +34,7 @@ from bubble_rt.estimation.membrane import Material, MembraneModel
 from bubble_rt.estimation.solver import GroupLassoSolver, SolverInfo, SolverSettings
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.mesh import Mesh
+from bubble_rt.sensor import SIM
 
 __all__ = [
     "CONFIG_KEYS",
@@ -43,12 +44,10 @@ __all__ = [
     "config_changes",
 ]
 
-#: Membrane material of the default estimator: the paper's nu and thickness, E fitted for the
-#: inflated linearisation on the calibration seeds (evaluation.CALIB_SEED_BASE, 4 x 20 frames
-#: per indenter; E 0.3-1.3 MPa scanned: net-force error and magnitude ratio best near 0.66).
-DEFAULT_MATERIAL = Material(E=0.66e6)
+#: Membrane material of the default estimator: the simulator's bubble (bubble_rt.sensor.SIM).
+DEFAULT_MATERIAL = Material(E=SIM.youngs_modulus, nu=SIM.poisson, thickness=SIM.thickness)
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
-_ABSOLUTE_PRESSURE_MIN = 30e3
+ABSOLUTE_PRESSURE_MIN = 30e3
 #: A node is in the lasso's support when its multiplier is within this of its weight.
 _SUPPORT_TOLERANCE = 1e-3
 
@@ -68,7 +67,9 @@ class EstimatorConfig:
         k_peak: contact threshold relative to the peak normal pressure over the support (-).
         inflation_pa: rest gauge pressure (Pa) the membrane is linearised about, used when the
             estimator is not given a reference (a reference's pressure replaces it).
-        atmospheric_pa: ambient pressure (Pa), subtracted from an absolute reference pressure.
+        ambient_pa: ambient pressure (Pa), subtracted from an absolute reference pressure: it
+            sets the rest gauge pressure, hence the rest tension that governs the force a dent
+            means (bubble_rt.sensor).
         solver: ADMM SolverSettings.
     """
 
@@ -79,7 +80,7 @@ class EstimatorConfig:
     k_linear: float = 2.0
     k_peak: float = 0.5
     inflation_pa: float = 5000.0
-    atmospheric_pa: float = 101325.0
+    ambient_pa: float = SIM.ambient_pa
     solver: SolverSettings = field(default_factory=SolverSettings)
 
     def __post_init__(self) -> None:
@@ -93,7 +94,7 @@ class EstimatorConfig:
         _validate.finite_scalar("k_linear", self.k_linear)
         _validate.finite_scalar("k_peak", self.k_peak)
         _validate.positive("inflation_pa", self.inflation_pa)
-        _validate.positive("atmospheric_pa", self.atmospheric_pa)
+        _validate.positive("ambient_pa", self.ambient_pa)
 
     def gauge_pressure(self, reference_pressure_pa: float | None) -> float:
         """Rest gauge pressure (Pa) from a reference pressure reading (absolute above 30 kPa,
@@ -101,7 +102,7 @@ class EstimatorConfig:
         if reference_pressure_pa is None or not np.isfinite(reference_pressure_pa):
             return self.inflation_pa
         p = float(reference_pressure_pa)
-        gauge = p - self.atmospheric_pa if p > _ABSOLUTE_PRESSURE_MIN else p
+        gauge = p - self.ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
         return gauge if gauge > 0 else self.inflation_pa
 
 
@@ -115,6 +116,7 @@ CONFIG_KEYS: dict[str, tuple[str, str | None]] = {
     "youngs_modulus": ("material", "E"),
     "poisson": ("material", "nu"),
     "thickness": ("material", "thickness"),
+    "ambient_pa": ("ambient_pa", None),
 }
 
 
@@ -161,7 +163,9 @@ class ForceEstimator:
         self.config = config or EstimatorConfig()
         self._interior = np.ascontiguousarray(mesh.interior, dtype=bool)
         self._tracker: _Tracker | None = None
-        self._build(self.config.gauge_pressure(getattr(reference, "pressure_pa", None)))
+        #: the reference's pressure reading (Pa, absolute or gauge; None: no reference)
+        self.reference_pressure_pa: float | None = getattr(reference, "pressure_pa", None)
+        self._build(self.config.gauge_pressure(self.reference_pressure_pa))
 
     def _build(self, inflation_pa: float) -> None:
         from bubble_rt import _core
@@ -236,13 +240,13 @@ class ForceEstimator:
         """Change config fields in place (EstimatorConfig field names).
 
         k_f / k_u refactor the solver (milliseconds), k_const / k_linear / k_peak are free,
-        solver settings are applied without rebuilding, material rebuilds K, the solver and
-        the refit (tenths of a second; seconds on the fine mesh).
+        solver settings are applied without rebuilding, material or ambient pressure rebuild
+        K, the solver and the refit (tenths of a second; seconds on the fine mesh).
         """
         new = dataclasses.replace(self.config, **changes)  # validates
-        if new.material != self.config.material:
+        if (new.material, new.ambient_pa) != (self.config.material, self.config.ambient_pa):
             self.config = new
-            self._build(self.inflation_pa)
+            self._build(new.gauge_pressure(self.reference_pressure_pa))
         else:
             if (new.k_f, new.k_u) != (self.config.k_f, self.config.k_u):
                 self.solver.set_weights(new.k_f, new.k_u)
@@ -260,7 +264,8 @@ class ForceEstimator:
         self._tracker = tracker
         ref = getattr(tracker, "reference", None)
         if ref is not None:
-            gauge = self.config.gauge_pressure(getattr(ref, "pressure_pa", None))
+            self.reference_pressure_pa = getattr(ref, "pressure_pa", None)
+            gauge = self.config.gauge_pressure(self.reference_pressure_pa)
             if abs(gauge - self.inflation_pa) > 1.0:
                 self._build(gauge)
 

@@ -30,12 +30,15 @@ from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
 
 
-def capture_settings(config: Any, *, realtime: bool) -> dict[str, Any]:
+def capture_settings(config: Any, *, realtime: bool, layout: str = "sim") -> dict[str, Any]:
     """``Pipeline.capture`` keyword arguments from a daemon configuration (``bubble_rt.config.
     DaemonConfig``, read through its ``estimator``, ``flow`` and ``solver`` sections): kind, mesh,
     fit, EstimatorConfig and FlowSettings. Every command that takes ``--config`` builds its
     pipeline from here. ``realtime`` applies ``solver.time_limit_ms`` (the daemon); offline
-    callers solve every frame to tolerance, so their results do not depend on the machine."""
+    callers solve every frame to tolerance, so their results do not depend on the machine.
+    ``layout`` (the data's: "sim", "punyo", "rosbag", ...) picks the sensor profile when the
+    configuration says ``profile = "auto"``; its ambient pressure applies unless the
+    configuration gives one."""
     from bubble_rt.estimation.estimator import CONFIG_KEYS
     from bubble_rt.estimation.solver import SolverSettings
 
@@ -43,6 +46,8 @@ def capture_settings(config: Any, *, realtime: bool) -> dict[str, Any]:
     limit = config.solver.time_limit_ms / 1e3 if realtime else 0.0
     est = EstimatorConfig(solver=SolverSettings(time_limit=limit))
     values = {key: float(getattr(ec, key)) for key in CONFIG_KEYS}
+    if not values["ambient_pa"]:
+        values["ambient_pa"] = ec.sensor_profile(layout).ambient_pa
     return {
         "mesh": ec.mesh,
         "fit": ec.fit_mesh,

@@ -128,20 +128,22 @@ class ChunkTask:
     k_linear: float = 2.0
 
 
-# Per-process estimator cache: token -> (E, estimator). Lives in each worker across evaluations.
-_WORKER_ESTIMATORS: dict[str, tuple[float, Any]] = {}
+# Per-process estimator cache: token -> ((E, ambient), estimator). Lives in each worker across evaluations.
+_WORKER_ESTIMATORS: dict[str, tuple[tuple[float, float | None], Any]] = {}
 
 
 def worker_estimator(
     token: str, mesh: Any, params: dict[str, float], factory: Callable[[Any, dict[str, float]], Any]
 ) -> Any:
     """This worker's estimator for ``token`` at ``params``: kept between loss evaluations and
-    reconfigured in place; rebuilt (``factory``) when E changes, since that refactors K."""
+    reconfigured in place; rebuilt (``factory``) when E or the ambient pressure changes, since
+    that refactors K."""
+    key = (params["E"], params.get("ambient_pa"))
     cached = _WORKER_ESTIMATORS.get(token)
-    if cached is not None and cached[0] == params["E"] and _reconfigure(cached[1], params):
+    if cached is not None and cached[0] == key and _reconfigure(cached[1], params):
         return cached[1]
     est = factory(mesh, params)
-    _WORKER_ESTIMATORS[token] = (params["E"], est)
+    _WORKER_ESTIMATORS[token] = (key, est)
     return est
 
 
@@ -233,6 +235,7 @@ class CalibrationResult:
 def calibrate(
     problem: LossProblem,
     *,
+    params: Sequence[str] = PARAMS,
     initial: dict[str, float] | None = None,
     method: str = "Nelder-Mead",
     max_evals: int = 60,
@@ -241,11 +244,13 @@ def calibrate(
     fan: FanOut | None = None,
     progress: bool = False,
 ) -> CalibrationResult:
-    """Minimise the summed loss over log(E), log(k_f), log(k_u).
+    """Minimise the summed loss over the logarithms of ``params`` (default E, k_f, k_u; each
+    named in ``initial``, which defaults to the estimator's values).
 
     ``bound``: parameters stay within a factor ``bound`` of ``initial``; ``step``: initial
     simplex / direction size in log units; ``max_evals`` caps loss evaluations.
     """
+    names = tuple(params)
     from scipy.optimize import minimize
 
     p0 = dict(DEFAULTS if initial is None else initial)
@@ -260,7 +265,7 @@ def calibrate(
     t0 = time.perf_counter()
 
     def params_of(x: NDArray[np.float64]) -> dict[str, float]:
-        return {k: float(p0[k] * np.exp(x[i])) for i, k in enumerate(PARAMS)}
+        return {**p0, **{k: float(p0[k] * np.exp(x[i])) for i, k in enumerate(names)}}
 
     def objective(x: NDArray[np.float64]) -> float:
         prm = params_of(np.asarray(x, dtype=float))
@@ -272,8 +277,8 @@ def calibrate(
         return val
 
     try:
-        x0 = np.zeros(len(PARAMS))
-        lo = np.full(len(PARAMS), -np.log(bound))
+        x0 = np.zeros(len(names))
+        lo = np.full(len(names), -np.log(bound))
         hi = -lo
         bounds = list(zip(lo, hi, strict=True))
         f0 = objective(x0)
@@ -284,10 +289,15 @@ def calibrate(
                 x0,
                 method="Powell",
                 bounds=bounds,
-                options={"maxfev": budget, "xtol": 1e-2, "ftol": 1e-4, "direc": step * np.eye(3)},
+                options={
+                    "maxfev": budget,
+                    "xtol": 1e-2,
+                    "ftol": 1e-4,
+                    "direc": step * np.eye(len(names)),
+                },
             )
         else:
-            simplex = np.vstack([x0, x0 + step * np.eye(len(PARAMS))])
+            simplex = np.vstack([x0, x0 + step * np.eye(len(names))])
             minimize(
                 objective,
                 x0,
@@ -426,7 +436,8 @@ def build_problem(
 def write_config(
     path: str | Path, result: CalibrationResult, extra: dict[str, Any] | None = None
 ) -> None:
-    """TOML the daemon and eval read: ``[estimator] k_f, k_u, youngs_modulus`` (Pa).
+    """TOML the daemon and eval read: ``[estimator] k_f, k_u, youngs_modulus`` (Pa), and
+    ``ambient_pa`` (Pa) when the calibration fitted it.
 
     The key for E is the daemon config's ``youngs_modulus`` (its loader rejects unknown keys
     and sections), so the provenance (losses, frames, settings) goes into comments.
@@ -442,6 +453,8 @@ def write_config(
             "youngs_modulus": result.params["E"],
         }
     }
+    if "ambient_pa" in result.params:
+        doc["estimator"]["ambient_pa"] = result.params["ambient_pa"]
     info = {
         "loss_initial": round(result.initial_loss, 6),
         "loss": round(result.loss, 6),

@@ -22,6 +22,12 @@ recorded wrench standing in for the simulator's net force::
   whose ``Frame.truth`` gives it on the mesh's nodes); real recordings have none and are
   scored on the force term alone.
 
+The rest tension governs the force a dent means, and it follows from the rest gauge pressure,
+which a sensor reading absolute pressure cannot know: so the ambient pressure is fitted too, as
+``gauge_pa`` (the first recording's rest gauge pressure, log-scaled like the others) and written
+out as ``ambient_pa`` (the first recording's reference pressure minus it; one ambient for all
+recordings). Every estimator is linearised about its own recording's reference pressure.
+
 The torque is read but not used. Per recording the mesh is fitted on its own reference
 frames, and (U, dp) are tracked once per frame (they do not depend on E, k_f, k_u), so one
 loss evaluation is only solves, fanned out like :class:`~bubble_rt.eval.calibration.
@@ -39,15 +45,19 @@ from __future__ import annotations
 import time
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt.estimation.estimator import ABSOLUTE_PRESSURE_MIN, EstimatorConfig
 from bubble_rt.eval import FanOut
 from bubble_rt.eval.calibration import (
+    DEFAULTS,
+    PARAMS,
     CalibrationResult,
     LossWeights,
     _sigmoid,
@@ -56,6 +66,10 @@ from bubble_rt.eval.calibration import (
     fem_factory,
     worker_estimator,
 )
+
+#: What ``calibrate --recording`` can fit: the paper's three and the ambient pressure, which
+#: sets the rest tension.
+FIT_PARAMS = (*PARAMS, "ambient_pa")
 
 
 class WrenchCalibrationError(ValueError):
@@ -83,6 +97,21 @@ class RecordingSet:
     frames: list[WrenchFrame]
     bias: NDArray[np.float64]  # (6,) mean wrench of the reference frames
     n_reference: int
+    reference_pressure_pa: float | None = None  # the reference's reading (Pa)
+
+
+def fem_at_reference(
+    reference_pressure_pa: float | None, mesh: Any, params: dict[str, float]
+) -> Any:
+    """The FEM estimator for ``params`` linearised about a recording's reference pressure
+    (``functools.partial`` it with the pressure: a picklable factory)."""
+    from types import SimpleNamespace
+
+    from bubble_rt.estimation.registry import make_estimator
+    from bubble_rt.eval import estimator_config
+
+    reference = SimpleNamespace(pressure_pa=reference_pressure_pa)
+    return make_estimator("fem", mesh, estimator_config(params), reference=reference)
 
 
 # ------------------------------------------------------------------------------ rotation
@@ -199,7 +228,9 @@ def _track(
                 index=int(getattr(f, "index", 0)),
             )
         )
-    return RecordingSet(name, fitted, out, bias, len(reference_frames))
+    return RecordingSet(
+        name, fitted, out, bias, len(reference_frames), reference_pressure_pa=reference.pressure_pa
+    )
 
 
 def frames_set(
@@ -321,8 +352,21 @@ class RecordingProblem:
     def contact_frames(self) -> int:
         return sum(f.c_gt is not None for f in self.frames)
 
+    @property
+    def rest_pressure_pa(self) -> float | None:
+        """The first recording's reference pressure (Pa), which ``gauge_pa`` is relative to."""
+        return self.sets[0].reference_pressure_pa if self.sets else None
+
+    def estimator_params(self, params: dict[str, float]) -> dict[str, float]:
+        """Estimator parameters from the fitted ones: ``gauge_pa`` becomes ``ambient_pa``."""
+        out = {k: v for k, v in params.items() if k != "gauge_pa"}
+        if "gauge_pa" in params and self.rest_pressure_pa is not None:
+            out["ambient_pa"] = float(self.rest_pressure_pa) - params["gauge_pa"]
+        return out
+
     def tasks(self, n: int, params: dict[str, float]) -> list[OutputTask]:
         """Chunks of every set, ``n`` in all at most (at least one per set)."""
+        params = self.estimator_params(params)
         total = max(1, len(self.frames))
         out = []
         for si, s in enumerate(self.sets):
@@ -334,7 +378,11 @@ class RecordingProblem:
                         mesh=s.mesh,
                         frames=[s.frames[i] for i in idx],
                         params=dict(params),
-                        factory=self.factory,
+                        factory=(
+                            partial(fem_at_reference, s.reference_pressure_pa)
+                            if self.factory is fem_factory
+                            else self.factory
+                        ),
                         weights=self.weights,
                         k_const=self.k_const,
                         k_linear=self.k_linear,
@@ -405,15 +453,35 @@ def calibrate_recordings(
     step: float = 0.5,
     fan: FanOut | None = None,
     progress: bool = False,
+    fit: Sequence[str] = ("E", "k_f", "k_u", "ambient_pa"),
 ) -> RecordingCalibration:
-    """Minimise the recording loss over log(E), log(k_f), log(k_u) (as :func:`calibrate`),
-    then report the rotation at the best parameters."""
+    """Minimise the recording loss over the logarithms of the ``fit`` parameters (of
+    :data:`FIT_PARAMS`; as :func:`calibrate`), the others held at ``initial`` (default: the
+    estimator's values), then report the rotation at the best parameters. ``ambient_pa`` is
+    searched as the rest gauge pressure ``gauge_pa`` (it needs recordings that read absolute
+    pressure); the result's params name ``ambient_pa``."""
+    bad = [k for k in fit if k not in FIT_PARAMS]
+    if bad or not fit:
+        raise WrenchCalibrationError(
+            f"cannot fit {bad or 'nothing'}: choose among {', '.join(FIT_PARAMS)}"
+        )
     own_fan = fan is None
     fan = fan or FanOut(1)
+    start = {**DEFAULTS, "ambient_pa": EstimatorConfig().ambient_pa, **(initial or {})}
+    rest = problem.rest_pressure_pa
+    if "ambient_pa" in fit:
+        if rest is None or rest <= ABSOLUTE_PRESSURE_MIN:
+            raise WrenchCalibrationError(
+                "ambient_pa: the recordings' pressure is not absolute, so there is no ambient "
+                "pressure to fit"
+            )
+    start["gauge_pa"] = float(rest) - start.pop("ambient_pa") if rest is not None else 0.0
+    names = tuple("gauge_pa" if k == "ambient_pa" else k for k in fit)
     try:
         res = calibrate(
             problem,
-            initial=initial,
+            params=names,
+            initial=start,
             method=method,
             max_evals=max_evals,
             bound=bound,
@@ -425,6 +493,11 @@ def calibrate_recordings(
     finally:
         if own_fan:
             fan.close()
+    res = replace(
+        res,
+        params=problem.estimator_params(res.params),
+        initial_params=problem.estimator_params(res.initial_params),
+    )
     return RecordingCalibration(
         result=res,
         rotation=final.rotation,

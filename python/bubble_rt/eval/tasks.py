@@ -72,15 +72,22 @@ _E_KEY = "youngs_modulus"
 
 
 def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) -> Any:
-    """An EstimatorConfig with k_f, k_u, k_const, k_linear and material E overridden (other
-    names are ignored)."""
+    """An EstimatorConfig with k_f, k_u, k_const, k_linear, ambient_pa and material E overridden
+    (other names are ignored)."""
     from dataclasses import replace
 
     from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
 
     cfg = EstimatorConfig()
     ov = dict(overrides)
-    keys = {"E": _E_KEY, "k_f": "k_f", "k_u": "k_u", "k_const": "k_const", "k_linear": "k_linear"}
+    keys = {
+        "E": _E_KEY,
+        "k_f": "k_f",
+        "k_u": "k_u",
+        "k_const": "k_const",
+        "k_linear": "k_linear",
+        "ambient_pa": "ambient_pa",
+    }
     values = {keys[k]: float(v) for k, v in ov.items() if k in keys}
     return replace(cfg, **config_changes(cfg, values)) if values else cfg
 
@@ -99,7 +106,14 @@ def load_config_overrides(path: str | Path | None) -> dict[str, float]:
 
     cfg = DaemonConfig.load(path)
     present = tomllib.loads(Path(path).read_text()).get("estimator", {})
-    names = {_E_KEY: "E", "k_f": "k_f", "k_u": "k_u", "k_const": "k_const", "k_linear": "k_linear"}
+    names = {
+        _E_KEY: "E",
+        "k_f": "k_f",
+        "k_u": "k_u",
+        "k_const": "k_const",
+        "k_linear": "k_linear",
+        "ambient_pa": "ambient_pa",
+    }
     return {
         name: float(getattr(cfg.estimator, key)) for key, name in names.items() if key in present
     }
