@@ -377,12 +377,17 @@ def evaluate_recording(
     scored = frames[n_reference:] if len(frames) > n_reference else frames
     f_gt = np.linalg.norm(W - bias, axis=1)[len(frames) - len(scored) :]
     touched = f_gt > force_threshold
-    config = estimator_config(overrides or {})
+    from bubble_rt.sensor import profile_for_layout
+
+    # The recording's sensor profile (a Punyo folder or bag: the Punyo's), unless overridden.
+    ambient = {"ambient_pa": profile_for_layout(getattr(rec, "layout", "")).ambient_pa}
+    config = estimator_config({**ambient, **(overrides or {})})
     out: dict[str, Any] = {
         "recording": str(path),
         "frames": len(scored),
         "reference_frames": n_reference,
         "force_threshold_n": force_threshold,
+        "ambient_pa": config.ambient_pa,
         "touched_frames": int(touched.sum()),
         "estimators": {},
     }
