@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io.client import Controller, Subscriber
+from bubble_rt.sensor import PUNYO
 from daemon_fakes import fake_config
 
 pytestmark = pytest.mark.timeout(300)
@@ -34,7 +35,11 @@ def test_replay_of_real_recording_gives_no_force_without_contact(tmp_path):
             frames = list(sub.frames(count=15, timeout_s=60))
         with Controller(d.control_address) as c:
             c.set_params(k_f=0.5)
-            assert "k_f = 0.5" in c.get_config()
+            config = c.get_config()
+            assert "k_f = 0.5" in config
+            # A Punyo recording: the Punyo profile's ambient pressure, written into the
+            # configuration the daemon reports (and records).
+            assert f"ambient_pa = {PUNYO.ambient_pa}" in config
     finally:
         d.stop()
     # 20 frames: 5 make the reference, 15 are processed losslessly.
