@@ -223,3 +223,10 @@ def test_leave_one_out_residual_is_the_value_minus_the_fill_without_it():
         without = known.copy()
         without[c] = False
         np.testing.assert_allclose(row, X[c] - harmonic_fill(L, X, without)[c], atol=1e-9)
+
+
+def test_jump_tolerance_must_be_positive_or_none():
+    assert FlowSettings(jump_m=None).jump_m is None
+    for bad in (0.0, -0.01, float("nan")):
+        with pytest.raises(ValueError, match="jump_m"):
+            FlowSettings(jump_m=bad)
