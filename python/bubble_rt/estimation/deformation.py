@@ -84,7 +84,8 @@ class FlowSettings:
             what ``outlier_m`` cannot: a node whose neighbours are all unmeasured (near the rim
             of a real Punyo's depth). Default 8 mm: on simulated presses a node stands out from
             its surroundings by at most 5.0 mm (point indenter, medium mesh), the real depth
-            jumps are 18-19 mm (docs/phantom-forces.md). None disables.
+            jumps are 18-19 mm (docs/phantom-forces.md). None disables; trackers without
+            depth images (the simulator's oracle) have no such check.
     """
 
     method: str = DEFAULT_FLOW_METHOD
@@ -297,8 +298,8 @@ class NodeTracker:
 
     Attributes:
         rays: N x 3 unit camera rays through the reference nodes (mesh frame), the direction a
-            depth jump moves a lifted node along; None (no camera): the depth-jump check uses
-            the whole displacement.
+            depth jump moves a lifted node along; None (no depth images, e.g. the simulator's
+            oracle): no depth-jump check.
     """
 
     def __init__(self, mesh: Mesh, reference: Reference, settings: FlowSettings) -> None:
@@ -323,27 +324,31 @@ class NodeTracker:
         reference (U = 0). Called by ``set_reference``."""
         self._previous = np.zeros_like(self.x_ref)
 
-    def _along_ray(self, V: NDArray[np.float64], nodes: NDArray[np.intp]) -> NDArray[np.float64]:
-        """Displacements ``V`` (len(nodes) x 3) of ``nodes`` along their camera rays (metres);
-        their norm without a camera."""
-        if self.rays is None:
-            return np.linalg.norm(V, axis=1)
-        return np.abs(np.einsum("ij,ij->i", V, self.rays[nodes]))
+    @staticmethod
+    def _along_ray(
+        rays: NDArray[np.float64], V: NDArray[np.float64], nodes: NDArray[np.intp]
+    ) -> NDArray[np.float64]:
+        """|displacements ``V``| (len(nodes) x 3) of ``nodes`` along their ``rays`` (metres)."""
+        return np.abs(np.einsum("ij,ij->i", V, rays[nodes]))
 
     def _depth_jumps(
-        self, U: NDArray[np.float64], known: NDArray[np.bool_], tol: float
+        self,
+        rays: NDArray[np.float64],
+        U: NDArray[np.float64],
+        known: NDArray[np.bool_],
+        tol: float,
     ) -> NDArray[np.intp]:
         """Measured nodes (``known`` minus the rim) whose displacement along the ray moved by
         more than ``tol`` (m) since the previous frame and stands out by more than ``tol`` from
         the membrane around it (``U``: N x 3, rim rows already 0 when clamped). The history
         test runs first: it is a subtraction, the neighbour test a small solve."""
         cand = np.flatnonzero(known & ~self._rim)
-        moved = self._along_ray(U[cand] - self._previous[cand], cand) > tol
+        moved = self._along_ray(rays, U[cand] - self._previous[cand], cand) > tol
         cand = cand[moved]
         if len(cand) == 0:
             return cand
         r = leave_one_out_residual(self._laplacian, U, known, cand)
-        return cand[self._along_ray(r, cand) > tol]
+        return cand[self._along_ray(rays, r, cand) > tol]
 
     def dp(self, frame: Frame) -> float:
         """Pressure change of ``frame`` against the reference, Pa."""
@@ -366,8 +371,8 @@ class NodeTracker:
         if s.clamp_rim:
             Uk[self._rim] = 0.0
             known |= self._rim
-        if s.jump_m is not None:
-            jumps = self._depth_jumps(Uk, known, s.jump_m)
+        if s.jump_m is not None and self.rays is not None:
+            jumps = self._depth_jumps(self.rays, Uk, known, s.jump_m)
             flags[jumps] |= FLAG_DEPTH_JUMP
             known[jumps] = False
         valid = flags == 0
