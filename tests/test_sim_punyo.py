@@ -12,9 +12,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from bubble_rt.eval.press_physics import (
     at_dent,
+    dome_gap,
     dp_at_force,
     hold_summary,
     real_press,
@@ -69,11 +71,16 @@ def test_simulated_dent_has_the_real_dents_shape(real, simulated):
 
 
 def test_simulated_punyo_dome_is_the_real_rest_dome():
-    """The inflated dome's apex is the one fitted to the real reference, within 0.5 mm, and the
-    simulated sensor reads the real rest pressure."""
+    """The inflated dome is the one fitted to the real reference (apex within 0.5 mm, heights
+    within 1.2 mm rms over the fitted mesh), and the simulated sensor reads the real rest
+    pressure."""
+    gap = dome_gap(str(PRESS), "punyo")
+    gap = gap[np.isfinite(gap)]
+    assert len(gap) > 300
+    print(f"dome: rms {np.sqrt(np.mean(gap**2)) * 1e3:.2f} mm, max {np.abs(gap).max() * 1e3:.2f}")
+    assert np.sqrt(np.mean(gap**2)) < 1.2e-3
     run = Simulator(load_scene("punyo")).run
-    apex = float(run.ref_vertices[:, 2].max())
-    assert abs(apex - real_rest_apex(str(PRESS))) < 0.5e-3
+    assert abs(float(run.ref_vertices[:, 2].max()) - real_rest_apex(str(PRESS))) < 0.5e-3
     from bubble_rt.io.recordings import open_recording
 
     rec = open_recording(PRESS)

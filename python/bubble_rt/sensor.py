@@ -121,16 +121,16 @@ SIM_BUBBLE = BubblePhysics(
 #: (``PUNYO_BAROMETRIC_AMBIENT_PA``), and no membrane modulus reproduces the real force and dent
 #: shape at that pressure (docs/sim-punyo.md).
 PUNYO_BUBBLE = BubblePhysics(
-    ambient_pa=91982.4,
-    gauge_pressure_pa=14604.1,
-    youngs_modulus_pa=3.797e6,
+    ambient_pa=92116.1,
+    gauge_pressure_pa=14470.4,
+    youngs_modulus_pa=3.762e6,
     thickness_m=SIM_BUBBLE.thickness_m,
     poisson=SIM_BUBBLE.poisson,
-    chamber_volume_m3=2.823e-4,
+    chamber_volume_m3=2.793e-4,
     semi_axis_x_m=SIM_BUBBLE.semi_axis_x_m,
     semi_axis_y_m=SIM_BUBBLE.semi_axis_y_m,
     dome_height_m=0.03047,
-    rest_dome_height_m=0.022853,
+    rest_dome_height_m=0.022852,
     camera="d405",
     # bubble_rt.io.punyo.punyo_pose(): the camera tilted 25 degrees, rim plane 54 mm away.
     camera_pose=(

@@ -266,6 +266,28 @@ def real_rest_apex(path: str, reference: Sequence[int] = (0, 1, 2, 3, 4)) -> flo
     return float(fit_mesh(Mesh.preset("medium"), ref, rec.camera).vertices[:, 2].max())
 
 
+def dome_gap(path: str, scene: object, reference: Sequence[int] = (0, 1, 2, 3, 4)) -> Any:
+    """Height differences (m) of the medium mesh fitted to a recording's untouched frames
+    against a simulated scene's inflated dome at the same footprint points (mesh frames, rim
+    z = 0): an array over the fitted mesh's interior nodes, simulated minus real."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from bubble_rt.estimation.deformation import Reference
+    from bubble_rt.estimation.fitting import fit_mesh
+    from bubble_rt.io.recordings import open_recording
+    from bubble_rt.mesh import Mesh
+    from bubble_rt.sim.simulator import Simulator
+
+    rec = open_recording(path)
+    fitted = fit_mesh(
+        Mesh.preset("medium"), Reference.capture([rec[i] for i in reference]), rec.camera
+    )
+    ref_v = Simulator(scene).run.ref_vertices  # type: ignore[arg-type]
+    height = LinearNDInterpolator(ref_v[:, :2], ref_v[:, 2])
+    v = fitted.vertices[fitted.interior]
+    return np.asarray(height(v[:, :2]) - v[:, 2])
+
+
 def inflated_apex(physics: object, sim_nodes: int = 2000) -> float:
     """Apex height (m) of the simulator's bubble inflated with ``physics`` (a PhysicsSpec)."""
     from bubble_rt.sim import physics as sp
@@ -313,7 +335,7 @@ def identify(
     path: str,
     fit: str = "gauge",
     ambient_pa: float | None = None,
-    radius_m: float = 0.010,
+    radius_m: float | None = None,
     log: Any = print,
 ) -> Identified:
     """Identify a real press's physics (docs/sim-punyo.md).
@@ -328,15 +350,17 @@ def identify(
        gauge pressure, so the simulated sensor reads the real absolute pressure.
        ``fit = "E"`` fits the modulus alone, with the gauge pressure the rest reading minus
        ``ambient_pa`` (default ``bubble_rt.sensor.PUNYO_BAROMETRIC_AMBIENT_PA``).
-    3. For each trial value, the stress-free dome whose inflation gives the real rest apex
+    3. The matched indenter: unless ``radius_m`` is given, the sphere whose dent, on the
+       starting bubble, covers the real dent's area (deeper than 2 mm) at the real depth
+       (secant on log radius, rounded to 0.1 mm; the dent's volume is reported against the
+       real one's). Then for each trial value, the stress-free dome whose inflation gives the real rest apex
        (secant on ``inflated_apex``); then a sphere of ``radius_m`` pressed along the normal at
        the real dent's centre (``press_scene``) gives the force at the real dent depth; the
        secant method on log force finds the value that gives the real force.
     4. The chamber volume from the isothermal gas: the simulator's pressure rise for its dent
        volume sets an effective total volume ``P dV / dp``; the chamber volume is shifted by
        what the real press's ``P dV / dp`` asks for, and step 3 runs again (twice in all).
-    Nothing is set by hand but the sphere's radius (its dent's area and volume are reported
-    against the real ones') and, for ``fit = "E"``, the ambient pressure.
+    Nothing is set by hand but, for ``fit = "E"``, the ambient pressure.
     """
     from dataclasses import replace
 
@@ -362,6 +386,20 @@ def identify(
         phys = replace(phys, atmospheric_pa=amb, gauge_pressure_pa=p_rest - amb)
     at = (real.centre_m[0], real.centre_m[1])
     press_depth = real.depth_m * 1.35
+    if radius_m is None:
+
+        def area_of(log_r: float) -> float:
+            r = float(np.exp(log_r))
+            s = at_dent(sim_press(press_scene(phys, at, r, press_depth)), real.depth_m)
+            log(
+                f"  sphere {r * 1e3:.2f} mm: area {s.area_m2 * 1e4:.2f} cm2, volume "
+                f"{s.volume_m3 * 1e6:.2f} cm3 at the real depth"
+            )
+            return float(np.log(s.area_m2))
+
+        r_fit = _secant(area_of, np.log(0.008), np.log(0.012), np.log(real.area_m2), tol=0.01)
+        radius_m = round(float(np.exp(r_fit)), 4)
+    rad = float(radius_m)
     runs: dict[float, tuple[Any, list[DentReading]]] = {}
 
     def trial(value: float) -> Any:
@@ -382,7 +420,7 @@ def identify(
 
     def force_of(log_x: float) -> float:
         p = trial(float(np.exp(log_x)))
-        rd = sim_press(press_scene(p, at, radius_m, press_depth))
+        rd = sim_press(press_scene(p, at, rad, press_depth))
         runs[log_x] = (p, rd)
         s = at_dent(rd, real.depth_m)
         log(
@@ -415,7 +453,7 @@ def identify(
         sim_dp_at_real_force_pa=dp_at_force(rd, real.force_n),
         sim_apex_m=inflated_apex(p),
         physics=p,
-        radius_m=radius_m,
+        radius_m=rad,
     )
 
 
@@ -447,6 +485,7 @@ __all__ = [
     "Identified",
     "PressSummary",
     "at_dent",
+    "dome_gap",
     "dp_at_force",
     "estimator_on_press",
     "hold_summary",
@@ -470,6 +509,6 @@ if __name__ == "__main__":  # pragma: no cover - the identification's evidence (
     ap.add_argument("path", nargs="?", default="../shared/data/punyo-demo-0-press")
     ap.add_argument("--fit", choices=("gauge", "E"), default="gauge")
     ap.add_argument("--ambient-pa", type=float, default=None, help="with --fit E")
-    ap.add_argument("--radius-m", type=float, default=0.010)
+    ap.add_argument("--radius-m", type=float, default=None, help="default: fitted")
     a = ap.parse_args()
     print(identify(a.path, a.fit, a.ambient_pa, a.radius_m))
