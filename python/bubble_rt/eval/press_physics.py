@@ -458,19 +458,27 @@ def identify(
 
 
 def estimator_on_press(
-    scene: object, ambient_pa: float, mesh: str = "medium"
+    scene: object,
+    ambient_pa: float,
+    youngs_modulus: float | None = None,
+    mesh: str = "medium",
 ) -> list[tuple[float, float]]:
     """(true |f|, estimated |f|) in N on each frame of a simulated press, read by the default
-    FEM estimator (configuration defaults, the ``ambient_pa`` given) fitted on 5 untouched
-    frames: how the estimator's linear model reads a bubble whose physics is known."""
+    FEM estimator (configuration defaults, the ``ambient_pa`` and, if given, the linearised
+    ``youngs_modulus`` (Pa) given) fitted on 5 untouched frames: how the estimator's linear
+    model reads a bubble whose physics is known."""
     from dataclasses import replace
 
-    from bubble_rt.estimation.estimator import EstimatorConfig
+    from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
     from bubble_rt.estimation.pipeline import Pipeline
     from bubble_rt.sim.simulator import Simulator
 
     sim = Simulator(scene)  # type: ignore[arg-type]
-    config = replace(EstimatorConfig(), ambient_pa=float(ambient_pa))
+    values = {"ambient_pa": float(ambient_pa)}
+    if youngs_modulus is not None:
+        values["youngs_modulus"] = float(youngs_modulus)
+    cfg = EstimatorConfig()
+    config = replace(cfg, **config_changes(cfg, values))
     pipe = Pipeline.capture(sim.reference_frames(5), sim.camera, mesh=mesh, config=config)
     out = []
     for f in sim.frames():
