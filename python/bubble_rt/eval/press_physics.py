@@ -6,8 +6,9 @@ can be compared with a real sensor's on equal terms (docs/sim-punyo.md):
 * the **dent** is the change of range along each camera ray between the untouched reference
   (per-pixel median of the reference frames) and a frame: ``dr = (z_ref - z) / cos(theta)``,
   positive where the membrane moved towards the camera. It is median-filtered (5 x 5 px) and
-  restricted to the connected region of ``dr > dent_floor_m`` around its deepest point, so
-  isolated depth jumps elsewhere in the image (a real D405's mixed pixels) do not count;
+  restricted to the connected region of ``dr > DENT_FLOOR_M`` that sweeps the largest volume,
+  so depth jumps elsewhere in the image (a real D405's mixed pixels) do not count, nor do
+  reference pixels whose frames disagree;
 * its **depth** is the largest filtered ``dr`` (m), its **area** above 2 mm is the surface area
   (m^2) of the pixels deeper than that, and its **volume** (m^3) is the volume swept between the
   two surfaces along the rays, exact for a pinhole camera: a pixel's solid angle times
@@ -16,7 +17,10 @@ can be compared with a real sensor's on equal terms (docs/sim-punyo.md):
 * the **pressure rise** (Pa) and the **force** (N, the magnitude of the wrench minus the
   reference frames' mean, or the simulator's true net force) come with the frame.
 
-Nothing here borrows the estimator: it reads depth images, pressures and wrenches only.
+The measurement borrows nothing from the estimator: it reads depth images, pressures and
+wrenches only. The identification (:func:`identify`) also fits the estimator's mesh to the real
+reference for the rest dome, and :func:`estimator_on_press` reads a simulated press with the
+estimator.
 """
 
 from __future__ import annotations
@@ -45,15 +49,15 @@ JUMP_M = 0.015
 class DentReading:
     """One frame's dent: depth_m (largest change of range along the rays, m), area_m2 (surface
     deeper than ``AREA_DEPTH_M``), volume_m3 (swept between reference and frame along the rays),
-    centre_px (u, v) of the deepest point, centre_m the depth-weighted centre of the part deeper
-    than ``AREA_DEPTH_M`` on the reference surface (mesh frame, m), dp_pa (pressure rise),
-    force_n (|f|)."""
+    centre_px (u, v) of the deepest point (None without a dent), centre_m the depth-weighted
+    centre of the part deeper than ``AREA_DEPTH_M`` on the reference surface (mesh frame, m;
+    None when no part is), dp_pa (pressure rise), force_n (|f|)."""
 
     depth_m: float
     area_m2: float
     volume_m3: float
-    centre_px: tuple[float, float]
-    centre_m: tuple[float, float, float]
+    centre_px: tuple[float, float] | None
+    centre_m: tuple[float, float, float] | None
     dp_pa: float
     force_n: float
 
@@ -91,19 +95,20 @@ def measure_dent(
     ok = np.isfinite(dr) & (np.abs(dr) < JUMP_M)
     med = ndimage.median_filter(np.where(ok, dr, 0.0), 5)
     if not ok.any() or med[ok].max() <= DENT_FLOOR_M:
-        nan2, nan3 = (np.nan, np.nan), (np.nan, np.nan, np.nan)
-        return DentReading(0.0, 0.0, 0.0, nan2, nan3, dp_pa, force_n)
-    iv, iu = np.unravel_index(int(np.argmax(np.where(ok, med, -np.inf))), med.shape)
-    lab, _ = ndimage.label(med > DENT_FLOOR_M)
-    region = (lab == lab[iv, iu]) & ok
-    zr = np.where(region, ref, 0.0)
-    zf = np.where(region, z, 0.0)
-    volume = float(np.sum(zr**3 - zf**3) / (3.0 * camera.fx * camera.fy))
+        return DentReading(0.0, 0.0, 0.0, None, None, dp_pa, force_n)
+    # Each pixel's swept volume; the dent is the connected region that sweeps the most (a
+    # patch of depth jumps may be deeper, but it is small).
+    swept = np.where(ok, ref**3 - z**3, 0.0) / (3.0 * camera.fx * camera.fy)
+    lab, n = ndimage.label((med > DENT_FLOOR_M) & ok)
+    per_region = ndimage.sum(swept, lab, index=np.arange(1, n + 1))
+    region = lab == 1 + int(np.argmax(per_region))
+    volume = float(swept[region].sum())
+    iv, iu = np.unravel_index(int(np.argmax(np.where(region, med, -np.inf))), med.shape)
     # Each pixel counts its footprint (z / fx)(z / fy) in the plane normal to the optical axis
     # at its reference depth: the area as the camera sees it, not along the tilted surface.
     deep = region & (med > AREA_DEPTH_M)
     area = float(np.sum((ref[deep] / camera.fx) * (ref[deep] / camera.fy)))
-    centre: tuple[float, float, float] = (np.nan, np.nan, np.nan)
+    centre: tuple[float, float, float] | None = None
     if deep.any():
         pts = camera.depth_to_points(np.where(deep, ref, 0.0).astype(np.float32))
         wts = med[deep]
@@ -164,23 +169,24 @@ HOLD_FORCE_N = 4.5
 @dataclass(frozen=True)
 class PressSummary:
     """A press's hold, or the simulator at the real hold's dent: dent depth (m), area deeper
-    than 2 mm (m^2), volume (m^3), pressure rise (Pa), force (N); centre_m (mesh frame, m)."""
+    than 2 mm (m^2), volume (m^3), pressure rise (Pa), force (N); centre_m (mesh frame, m; None
+    when the dent has no part deeper than 2 mm)."""
 
     depth_m: float
     area_m2: float
     volume_m3: float
     dp_pa: float
     force_n: float
-    centre_m: tuple[float, float, float]
+    centre_m: tuple[float, float, float] | None
 
 
 def hold_summary(readings: Sequence[DentReading], force_n: float = HOLD_FORCE_N) -> PressSummary:
     """The mean over the frames whose force is at least ``force_n`` (the real press's hold)."""
-    hold = [r for r in readings if r.force_n >= force_n and r.depth_m > 0]
+    hold = [r for r in readings if r.force_n >= force_n and r.centre_m is not None]
     if not hold:
-        raise ValueError(f"no frame with a dent and a force of {force_n} N or more")
+        raise ValueError(f"no frame with a dent deeper than 2 mm and {force_n} N or more")
     mean = lambda k: float(np.mean([getattr(r, k) for r in hold]))  # noqa: E731
-    c = np.nanmean([r.centre_m for r in hold], axis=0)
+    c = np.mean([r.centre_m for r in hold if r.centre_m is not None], axis=0)
     return PressSummary(
         mean("depth_m"),
         mean("area_m2"),
@@ -384,6 +390,7 @@ def identify(
     if fit == "E":
         amb = PUNYO_BAROMETRIC_AMBIENT_PA if ambient_pa is None else ambient_pa
         phys = replace(phys, atmospheric_pa=amb, gauge_pressure_pa=p_rest - amb)
+    assert real.centre_m is not None  # hold_summary keeps frames with a centre only
     at = (real.centre_m[0], real.centre_m[1])
     press_depth = real.depth_m * 1.35
     if radius_m is None:
