@@ -249,3 +249,5 @@ def test_profile_sets_physics_and_camera_defaults():
     assert s.sensor.camera_pose == PUNYO_BUBBLE.camera_pose
     with pytest.raises(SceneError, match="profile: unknown sensor profile 'gel'"):
         parse_scene('profile = "gel"\n' + BASE)
+    with pytest.raises(SceneError, match="profile: unknown sensor profile"):
+        parse_scene("profile = [1]\n" + BASE)

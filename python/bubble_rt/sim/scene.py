@@ -325,7 +325,7 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         raise SceneError(f"name: expected a non-empty string, got {name!r}")
     seed = _int(data, "seed", "", 0)
     prof = data.get("profile", "sim")
-    if prof not in PROFILES:
+    if not isinstance(prof, str) or prof not in PROFILES:
         raise SceneError(f"profile: unknown sensor profile {prof!r}; known: {', '.join(PROFILES)}")
     bubble = PROFILES[prof].bubble
 
