@@ -153,18 +153,27 @@ def profile_params() -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[CALIB_SEED_BASE, CALIB_SEED_BASE + 1],
+        help="the calibration sets' master seeds",
+    )
     ap.add_argument("--per-indenter", type=int, default=2, help="calibration scenes per indenter")
     ap.add_argument("--eval-per-indenter", type=int, default=2)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--indenters", nargs="+", default=list(INDENTERS))
-    ap.add_argument("--fit", nargs="+", default=["ambient_pa", "E"])
+    ap.add_argument(
+        "--fit", nargs="+", default=["ambient_pa"], help="E, k_f, k_u held at the estimator's"
+    )
     ap.add_argument(
         "--start-ambient-pa",
         type=float,
         default=PUNYO.bubble.ambient_pa,
         help="where the search starts (default: the simulated bubble's true ambient)",
     )
-    ap.add_argument("--max-evals", type=int, default=40)
+    ap.add_argument("--max-evals", type=int, default=30)
     ap.add_argument("--grid", type=int, default=5, help="grid points per axis (0: no grid)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="", help="write the fitted [estimator] keys here")
@@ -175,11 +184,15 @@ def main() -> None:
     fan = FanOut(a.workers)
     try:
         cache = lambda name: f"{a.cache}/{name}.pkl" if a.cache else ""  # noqa: E731
-        calib = simulated_sets(
-            punyo_scenes(CALIB_SEED_BASE, a.per_indenter, a.frames, a.indenters),
-            fan,
-            cache("calibration"),
-        )
+        calib = [
+            s
+            for seed in a.seeds
+            for s in simulated_sets(
+                punyo_scenes(seed, a.per_indenter, a.frames, a.indenters),
+                fan,
+                cache(f"calibration-{seed}"),
+            )
+        ]
         held = simulated_sets(
             punyo_scenes(EVAL_SEED_BASE, a.eval_per_indenter, a.frames, a.indenters),
             fan,
@@ -231,7 +244,7 @@ def main() -> None:
 
         for name, params in (
             ("true gauge (ambient = the bubble's), E default", start),
-            ("punyo profile now", profile_params()),
+            ("punyo profile (bubble_rt.sensor)", profile_params()),
             ("fitted", fitted),
         ):
             print(f"calibration  {name}: {score(calib, params).row()}")
@@ -240,7 +253,7 @@ def main() -> None:
             write_config(
                 a.out,
                 res,
-                {**cal.info(), "scenes": [s.name for s in calib], "seed": CALIB_SEED_BASE},
+                {**cal.info(), "scenes": [s.name for s in calib], "seeds": a.seeds},
             )
             print(f"wrote {a.out}")
     finally:
