@@ -25,7 +25,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -178,6 +178,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="", help="write the fitted [estimator] keys here")
     ap.add_argument("--cache", default="", help="folder for the tracked frames (pickles)")
+    ap.add_argument("--json", default="", help="write the fit and the scores here")
     a = ap.parse_args()
 
     t0 = time.perf_counter()
@@ -242,13 +243,21 @@ def main() -> None:
                     )
                 )
 
+        report: dict[str, Any] = {"fit": a.fit, "seeds": a.seeds, "fitted_params": fitted}
         for name, params in (
             ("true gauge (ambient = the bubble's), E default", start),
             ("punyo profile (bubble_rt.sensor)", profile_params()),
             ("fitted", fitted),
         ):
-            print(f"calibration  {name}: {score(calib, params).row()}")
-            print(f"held-out     {name}: {score(held, params).row()}")
+            sc, sh = score(calib, params), score(held, params)
+            print(f"calibration  {name}: {sc.row()}")
+            print(f"held-out     {name}: {sh.row()}")
+            report[name] = {"params": params, "calibration": asdict(sc), "held_out": asdict(sh)}
+        if a.json:
+            import json
+            from pathlib import Path
+
+            Path(a.json).write_text(json.dumps(report, indent=1))
         if a.out:
             write_config(
                 a.out,
