@@ -49,7 +49,8 @@ from bubble_rt.mesh import lumped_areas as lumped_areas  # re-exported for evalu
 from bubble_rt.mesh import vertex_normals as vertex_normals
 
 #: True net force (N) below which a frame counts as untouched: the false-contact rate is over
-#: these frames only (the simulator's truth reads |f| <= 1e-14 N with no indenter contact).
+#: these frames only (the simulator's truth is exactly 0 N without indenter contact; a grazing
+#: first touch reads up to a few hundredths of a newton).
 UNTOUCHED_N = 0.05
 #: Range (N, inclusive) of true net force of a light touch, whose detection rate is reported.
 LIGHT_TOUCH_RANGE_N = (0.1, 1.5)
