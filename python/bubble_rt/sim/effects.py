@@ -136,7 +136,8 @@ def depth_jumps(
     surface. Within ``edge_px`` of a hole edge, small blobs (``blob_px``) covering ``rate`` of
     the band each frame report the local surface depth (the nearest valid depth, for pixels
     inside the hole) plus an excess drawn from an exponential of mean ``scale_m``, capped at
-    ``max_m``. A share ``hole_share`` of them fall on the hole side (pixels that are otherwise
+    ``max_m``, behind the surface for a share ``behind_share`` of them and in front for the
+    rest. A share ``hole_share`` of them fall on the hole side (pixels that are otherwise
     invalid), the rest on valid pixels. Run after "depth_dropouts" (it needs holes).
     """
     import cv2
@@ -176,10 +177,12 @@ def depth_jumps(
     local = np.where(valid, out, cv2.dilate(filled, big))
     excess = rng.exponential(max(p["scale_m"], 0.0), size=int(chosen.sum()))
     excess = np.minimum(excess, p["max_m"]).astype(np.float32)
+    # Most read behind the surface (an aliased disparity); the rest in front of it.
+    excess[rng.random(excess.size) >= p["behind_share"]] *= -1
     base = local[chosen]
     ok = base > 0
     idx = np.flatnonzero(chosen.ravel())[ok]
-    out.reshape(-1)[idx] = base[ok] + excess[ok]
+    out.reshape(-1)[idx] = np.maximum(base[ok] + excess[ok], np.float32(1e-4))
     return out
 
 

@@ -45,10 +45,11 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
     # edge_px around each hole per frame, hole_share of them inside the hole, reading the
     # local surface plus an exponential excess of mean scale_m, capped at max_m (m).
     "depth_jumps": {
-        "rate": 0.02,
+        "rate": 0.025,
         "edge_px": 3.0,
         "blob_px": 25.0,
         "hole_share": 0.95,
+        "behind_share": 0.6,
         "scale_m": 0.01,
         "max_m": 0.045,
     },

@@ -41,6 +41,9 @@ from bubble_rt.mesh import Mesh
 JUMP_M = 0.002
 #: Larger deviations (m) are the background seen past the membrane (a hole), not a jump.
 MAX_JUMP_M = 0.05
+#: Nominal range (m) below which a jump is the near-range limit's (disparity aliasing), not an
+#: occluder's edge: the real frames' other jumps are mostly the cable and label in view.
+NEAR_RANGE_M = 0.060
 #: Range bins (m) of the noise and hole statistics: the membrane spans 50-105 mm.
 RANGE_EDGES_M: tuple[float, ...] = tuple(np.round(np.arange(0.050, 0.1101, 0.005), 3))
 #: Local grey-level contrast (std over 15 px, 8-bit levels) of a textured node, and of a
@@ -78,6 +81,10 @@ class SensorStats:
         jump_at_edges: share of jump pixels within EDGE_BAND_PX of an invalid pixel.
         jump_edge_rate: jump pixels per pixel of the band within EDGE_BAND_PX of a hole's edge
             (either side), per frame: the sensor's rate, whatever edges the scene has.
+        jump_near_rate: the jump rate (per frame per 10^5 pixels) on the membrane nearer than
+            NEAR_RANGE_M (nominal), where the near-range limit makes them.
+        jump_behind, jump_near_behind: share of the jumps (all; near-range) that read
+            farther than the surface.
         flow_rms_px, flow_median_px: RMS and median over visible nodes of each node's RMS
             flow against the first frame (px); flow_textured_px: the RMS over nodes whose
             local contrast is at least TEXTURED_LEVELS, flow_textured_detrended_px the same
@@ -107,6 +114,9 @@ class SensorStats:
     jump_in_holes: float
     jump_at_edges: float
     jump_edge_rate: float
+    jump_near_rate: float
+    jump_behind: float
+    jump_near_behind: float
     flow_rms_px: float = float("nan")
     flow_median_px: float = float("nan")
     flow_textured_px: float = float("nan")
@@ -241,6 +251,7 @@ def depth_stats(
     nj = int(jump.sum())
     mags = np.abs(dev[jump]) * 1e3
     rpx = int(region.sum())
+    near = region & (nominal < NEAR_RANGE_M)
     return {
         "frames": n,
         "region_px": rpx,
@@ -266,6 +277,11 @@ def depth_stats(
         "jump_in_holes": float((jump & ~steady).sum() / nj) if nj else float("nan"),
         "jump_at_edges": float((jump & near_edge).sum() / nj) if nj else float("nan"),
         "jump_edge_rate": float((jump & band).sum() / max(int(band.sum()), 1)),
+        "jump_near_rate": float(jump[:, near].sum() / n / max(int(near.sum()), 1) * 1e5),
+        "jump_behind": float((dev[jump] > 0).mean()) if nj else float("nan"),
+        "jump_near_behind": (
+            float((dev[:, near][jump[:, near]] > 0).mean()) if jump[:, near].any() else float("nan")
+        ),
     }
 
 
@@ -442,6 +458,11 @@ def table(real: SensorStats, sims: dict[str, SensorStats]) -> str:
     add("hole persistence (IoU)", lambda s: f"{s.hole_persistence:.2f}")
     add("jumps > 2 mm per frame per 1e5 px", lambda s: f"{s.jump_rate:.1f}")
     add("jumps per hole-edge pixel (%)", lambda s: f"{100 * s.jump_edge_rate:.2f}")
+    add(f"jumps under {NEAR_RANGE_M * 1e3:.0f} mm per 1e5 px", lambda s: f"{s.jump_near_rate:.1f}")
+    add(
+        "jumps behind the surface, all / near",
+        lambda s: f"{s.jump_behind:.2f} / {s.jump_near_behind:.2f}",
+    )
     for z in (57.5, 72.5, 87.5):
         add(f"jumps at {z:.0f} mm per 1e5 px", lambda s, z=z: f"{s.jump_at(z):.1f}")
     add("jump size p50 / p95 / max (mm)", lambda s: "{:.1f} / {:.1f} / {:.1f}".format(*s.jump_mm))
