@@ -200,10 +200,10 @@ def test_depth_dropouts_follow_the_near_range_limit():
 
 def test_depth_dropouts_stay_put_frame_to_frame():
     z = ramp_depth()
-    scene_rng = [effects.effect_rng(3, "depth_dropouts", effects.SCENE_STREAM) for _ in range(2)]
+    field = effects.scene_field(3, "depth_dropouts", z.shape, D405_DROPOUTS["blob_px"])
     a, b = (
-        effects.depth_dropouts(z, D405_DROPOUTS, effects.effect_rng(3, "d", k), 0.0, scene_rng=r)
-        for k, r in zip((1, 2), scene_rng, strict=True)
+        effects.depth_dropouts(z, D405_DROPOUTS, effects.effect_rng(3, "d", k), 0.0, field=field)
+        for k in (1, 2)
     )
     ha, hb = a == 0, b == 0
     iou = (ha & hb).sum() / (ha | hb).sum()
