@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,7 +126,6 @@ class SensorStats:
     node_u_rms_mm: float = float("nan")
     rgb_noise: float = float("nan")
     grey_noise: float = float("nan")
-    notes: dict[str, float] = field(default_factory=dict)
 
     def noise_at(self, z_mm: float) -> float:
         """The binned temporal noise (mm) at range ``z_mm`` (NaN outside the bins)."""
@@ -367,7 +366,9 @@ def measure(frames: Sequence[Frame], camera: Camera, flow: bool = True) -> Senso
     frames = list(frames)
     if len(frames) < 3:
         raise ValueError(f"need at least 3 untouched frames, got {len(frames)}")
-    kw: dict = dict(depth_stats([f.depth for f in frames if f.depth is not None], camera))
+    if any(f.depth is None for f in frames):
+        raise ValueError("every frame needs a depth image (an oracle scene renders none)")
+    kw: dict = dict(depth_stats([np.asarray(f.depth) for f in frames], camera))
     if flow and all(f.rgb is not None for f in frames):
         kw.update(flow_stats(frames, camera))
     if all(f.rgb is not None for f in frames):
