@@ -242,9 +242,8 @@ def test_calibration_on_punyo_recordings_recovers_truth_parameters_and_rotation(
     truth_loss = _Sum(sim.problems).loss(sim.truth.params)
     assert _Sum(sim.problems).loss(out.result.params) <= 1.01 * truth_loss
     assert angle < ROTATION_TOL_DEG
-    # The loss at the recovered parameters is no worse than at the truth's (it is minimised,
-    # to the optimiser's budget: 1 %, as above; on D405-like noise it stops 0.15 % short).
-    assert out.result.loss <= 1.01 * rc.RecordingProblem(sets).loss(sim.truth.params)
+    # The loss at the recovered parameters is no worse than at the truth's (it is minimised).
+    assert out.result.loss <= rc.RecordingProblem(sets).loss(sim.truth.params) + 1e-9
     # The fitted rotation is far better than knowing nothing (identity: 35 degrees off).
     assert angle < 0.5 * rc.rotation_angle_deg(np.eye(3), R_TRUE)
 
