@@ -81,7 +81,7 @@ def track_sim(flow: str, seed: int, n_frames: int, min_force: float) -> dict[str
                 per_mesh[m]["mesh"].append(mesh)
                 per_mesh[m]["pressure_pa"].append(pipe.reference.pressure_pa)
                 per_mesh[m]["frames"].append(tracked[i])
-    return {"labels": labels, "per_mesh": per_mesh, "config": EstimatorConfig()}
+    return {"labels": labels, "per_mesh": per_mesh, "profile": "sim"}
 
 
 def _reference(frames: list[Any]) -> Any:
@@ -93,10 +93,8 @@ def _reference(frames: list[Any]) -> Any:
 def track_real() -> dict[str, Any]:
     """Per mesh: the shared press's hold frames tracked on the fitted mesh (Punyo profile)."""
     from bubble_rt.io.recordings import open_recording
-    from bubble_rt.sensor import PUNYO
 
     rec = open_recording(REAL)
-    config = EstimatorConfig(ambient_pa=PUNYO.ambient_pa)
     wr = np.array([rec[i].wrench[:3] for i in range(len(rec))])
     truth = np.linalg.norm(wr - wr[:5].mean(0), axis=1)
     per_mesh: dict[str, Any] = {}
@@ -109,12 +107,16 @@ def track_real() -> dict[str, Any]:
             "frames": tracked,
         }
     labels = [("press", i, float(truth[i])) for i in REAL_HOLD]
-    return {"labels": labels, "per_mesh": per_mesh, "config": config}
+    return {"labels": labels, "per_mesh": per_mesh, "profile": "punyo"}
 
 
 def estimate(data: dict[str, Any], config: EstimatorConfig | None = None) -> dict[str, Any]:
-    """Per mesh, per frame: |f_est| (N), patch area (m^2), support nodes and area (m^2)."""
-    config = config or data["config"]
+    """Per mesh, per frame: |f_est| (N), patch area (m^2), support nodes and area (m^2),
+    solve and refit times (ms). ``config``: default, EstimatorConfig with the data's sensor
+    profile's ambient pressure."""
+    from bubble_rt.sensor import PROFILES
+
+    config = config or EstimatorConfig(ambient_pa=PROFILES[data["profile"]].ambient_pa)
     out: dict[str, Any] = {}
     for m, d in data["per_mesh"].items():
         rows = []
@@ -132,6 +134,8 @@ def estimate(data: dict[str, Any], config: EstimatorConfig | None = None) -> dic
                     float(a[e.contact].sum()),
                     int(e.support.sum()),
                     float(a[e.support].sum()),
+                    e.timings_ms["solve"],
+                    e.timings_ms["refit"],
                 )
             )
         out[m] = np.array(rows)
@@ -146,8 +150,9 @@ def table(name: str, data: dict[str, Any], res: dict[str, Any]) -> str:
         f"{name} ({len(truth)} frames)",
         "",
         "| nodes | median |f|/|f_true| | median |f|/|f_finest| (worst) "
-        "| median area/area_finest (worst) | support nodes | support cm^2 | patch cm^2 |",
-        "|---|---|---|---|---|---|---|",
+        "| median area/area_finest (worst) | support nodes | support cm^2 | patch cm^2 "
+        "| solve + refit ms |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for m in MESHES:
         r = res[m]
@@ -159,7 +164,8 @@ def table(name: str, data: dict[str, Any], res: dict[str, Any]) -> str:
             f"| {int(m)} | {np.median(r[:, 0] / truth):.2f} "
             f"| {np.median(f_rel):.2f} ({worst_f:.2f}) | {np.median(a_rel):.2f} ({worst_a:.2f}) "
             f"| {np.median(r[:, 2]):.0f} | {1e4 * np.median(r[:, 3]):.2f} "
-            f"| {1e4 * np.median(r[:, 1]):.2f} |"
+            f"| {1e4 * np.median(r[:, 1]):.2f} "
+            f"| {np.median(r[:, 4]):.1f} + {np.median(r[:, 5]):.1f} |"
         )
     return "\n".join(lines)
 
