@@ -311,6 +311,7 @@ struct GroupLassoSolver::SolveState {
         u(2 * m),
         g(2 * m) {}
   Clock::time_point t0;
+  bool warm = false;           // started from the previous frame's solution
   double raw_force_scale = 0;  // rms nodal force at dU = 0, floors the force scale of rho
   const BlockLDLT* ldlt = nullptr;
   double rho = 0;
@@ -341,8 +342,9 @@ SolverResult GroupLassoSolver::solve() {
     info.solve_time_ms = ms_since(t0);
     return res;
   }
-  start_iterates();
   SolveState st(t0, 3 * n_, 3 * nf_, settings_.anderson_memory);
+  st.warm = settings_.warm_start && have_prev_;
+  start_iterates();
   st.raw_force_scale = std::sqrt(bh_.squaredNorm() / n_);
   set_frame_rho(st.raw_force_scale);
   use_rho(st, &info.factorizations);
@@ -586,11 +588,14 @@ double GroupLassoSolver::dual_value(const DualPoint& p) const {
 }
 
 // The gap bounds the suboptimality of x, so "solved" is a certificate, not a heuristic.
+// The time limit binds only a warm-started solve: a cold one stopped early has multipliers on
+// their bounds at most nodes, and the support read from them is noise (on real untouched
+// frames, 140-180 of 227 nodes and a 0.25 N phantom after 5-20 iterations).
 std::optional<SolverStatus> GroupLassoSolver::termination(const SolveState& st) const {
   if (!std::isfinite(st.pobj) || !xh_.allFinite()) return SolverStatus::non_finite_input;
   if (st.gap <= settings_.eps_abs + settings_.eps_rel * std::abs(st.pobj))
     return SolverStatus::solved;
-  if (settings_.time_limit > 0 && ms_since(st.t0) > 1e3 * settings_.time_limit)
+  if (st.warm && settings_.time_limit > 0 && ms_since(st.t0) > 1e3 * settings_.time_limit)
     return SolverStatus::time_limit_reached;
   return std::nullopt;
 }

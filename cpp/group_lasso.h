@@ -52,7 +52,7 @@ struct SolverSettings {
   double eps_rel = 8e-4;               // relative duality-gap tolerance
   int max_iter = 4000;
   int check_interval = 5;   // iterations between termination checks
-  double time_limit = 0.0;  // seconds per solve, 0 = none
+  double time_limit = 0.0;  // seconds per warm-started solve, 0 = none (a cold one runs on)
   int scaling_iter = 0;     // Ruiz equilibration passes, 0 = no scaling
   bool warm_start = true;   // start each solve from the previous solution
   int anderson_memory = 5;  // Anderson acceleration memory (0 = off)

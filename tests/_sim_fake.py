@@ -67,7 +67,7 @@ class FakePhysics:
     def __init__(self) -> None:
         self.calls = 0
 
-    def rest_mesh(self, sim_nodes: int) -> Mesh:
+    def rest_mesh(self, sim_nodes: int, rest_dome_height_m: float) -> Mesh:
         return Mesh.generate(sim_nodes)
 
     def create(self, scene: Any, rest_mesh: Mesh) -> FakeSim:

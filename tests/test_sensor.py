@@ -58,6 +58,45 @@ def test_profiles_are_named_once_and_resolved_by_layout():
         profile("gelsight")
 
 
+def test_bubble_constants_are_declared_once_and_read_by_simulator_and_estimator():
+    """The simulator's default physics and geometry and the estimator's defaults read the
+    profiles' bubbles: nothing restates them."""
+    from bubble_rt.estimation.estimator import EstimatorConfig
+    from bubble_rt.mesh import MeshGeometry
+    from bubble_rt.sim.physics import DEFAULT_REST_DOME_HEIGHT, GasSettings, MembraneMaterial
+    from bubble_rt.sim.scene import PhysicsSpec
+
+    b = SIM.bubble
+    assert PhysicsSpec() == PhysicsSpec.of(b)
+    assert (MembraneMaterial().E, MembraneMaterial().thickness) == (
+        b.youngs_modulus_pa,
+        b.thickness_m,
+    )
+    gas = GasSettings()
+    assert (gas.gauge_pressure_pa, gas.atmospheric_pa) == (b.gauge_pressure_pa, b.ambient_pa)
+    assert DEFAULT_REST_DOME_HEIGHT == b.rest_dome_height_m
+    g = MeshGeometry()
+    assert (g.semi_axis_x, g.semi_axis_y, g.dome_height) == (
+        b.semi_axis_x_m,
+        b.semi_axis_y_m,
+        b.dome_height_m,
+    )
+    assert EstimatorConfig().inflation_pa == b.gauge_pressure_pa
+    assert EstimatorConfig().ambient_pa == SIM.ambient_pa == b.ambient_pa
+    assert (SIM.thickness, SIM.poisson) == (b.thickness_m, b.poisson)
+    assert (PUNYO.thickness, PUNYO.poisson) == (PUNYO.bubble.thickness_m, PUNYO.bubble.poisson)
+
+
+def test_punyo_bubble_reads_the_real_rest_pressure():
+    """The identified bubble's ambient plus gauge pressure is what the real sensor reads at
+    rest (reference frames 0-4), so a simulated Punyo reads like the real one."""
+    from bubble_rt.io.recordings import open_recording
+
+    rec = open_recording(PRESS)
+    p_rest = float(np.mean([rec[i].pressure_pa for i in range(5)]))
+    assert abs(PUNYO.bubble.rest_pressure_pa - p_rest) < 50.0
+
+
 def test_punyo_profile_reads_the_real_press_out_of_the_box(tmp_path):
     """No configuration: the Punyo layout picks the Punyo profile, whose rest tension was
     identified on this press; the force scale and error meet the issue's real-sensor targets,

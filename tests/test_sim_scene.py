@@ -199,3 +199,55 @@ shapes = [ { type = "sphere", radius = 0.01, center = [0, 0, 0.01] },
     np.testing.assert_allclose(d[:3], [0.005, 0.0, -0.001], atol=1e-9)
     assert d[3] > 0.04
     assert phys.distance(phys.indenter(load_scene("demo").indenter), pts[:1], np.eye(4))[0] > 0
+
+
+def test_default_physics_is_the_sim_profiles_bubble_and_keeps_its_cache_key():
+    """The default scene's physics is declared once, in bubble_rt.sensor; a field added since
+    (the stress-free dome) stays out of the key at its default, so existing caches stay valid,
+    and enters it when set."""
+    from dataclasses import asdict
+
+    from bubble_rt.sensor import SIM_BUBBLE
+    from bubble_rt.sim.scene import PhysicsSpec
+
+    demo = load_scene("demo")
+    assert demo.profile == "sim" and demo.physics == PhysicsSpec.of(SIM_BUBBLE)
+    assert demo.sensor.camera_pose is None
+    legacy = asdict(demo.physics)
+    del legacy["rest_dome_height_m"]
+    import hashlib
+    import json
+
+    from bubble_rt.sim.physics import PHYSICS_REVISION
+
+    payload = {
+        "version": "0",
+        "physics_revision": PHYSICS_REVISION,
+        "sim_nodes": demo.sensor.sim_nodes,
+        "physics": legacy,
+        "indenter": asdict(demo.indenter),
+        "trajectory": asdict(demo.trajectory),
+        "frames": demo.frames,
+        "camera_hz": demo.rates.camera_hz,
+        "friction": demo.params("friction"),
+        "gas": True,
+    }
+    blob = json.dumps(payload, sort_keys=True, default=str).encode()
+    assert demo.physics_key("0") == hashlib.sha256(blob).hexdigest()[:32]
+    taller = parse_scene("[physics]\nrest_dome_height_m = 0.025\n" + BASE)
+    assert taller.physics_key("0") != parse_scene(BASE).physics_key("0")
+
+
+def test_profile_sets_physics_and_camera_defaults():
+    from bubble_rt.sensor import PUNYO_BUBBLE
+
+    s = parse_scene('profile = "punyo"\n[physics]\nchamber_volume_m3 = 2e-4\n' + BASE)
+    assert s.profile == "punyo"
+    assert s.physics.gauge_pressure_pa == PUNYO_BUBBLE.gauge_pressure_pa
+    assert s.physics.rest_dome_height_m == PUNYO_BUBBLE.rest_dome_height_m
+    assert s.physics.chamber_volume_m3 == 2e-4  # a key still overrides the profile
+    assert s.sensor.camera_pose == PUNYO_BUBBLE.camera_pose
+    with pytest.raises(SceneError, match="profile: unknown sensor profile 'gel'"):
+        parse_scene('profile = "gel"\n' + BASE)
+    with pytest.raises(SceneError, match="profile: unknown sensor profile"):
+        parse_scene("profile = [1]\n" + BASE)

@@ -350,8 +350,9 @@ class SolverSection:
 
     time_limit_ms: float = option(
         25.0,
-        "per-frame solve budget (0: none); the best iterate so far is published with solver "
-        "status time_limit_reached",
+        "per-frame solve budget (0: none) of a warm-started solve; the best iterate so far is "
+        "published with solver status time_limit_reached (a cold solve, after a reference or a "
+        "tare, runs to certification: its early iterates mark a support of noise)",
         lo=0,
         hi=10_000,
         unit="ms",

@@ -20,6 +20,8 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, cKDTree
 
+from bubble_rt.sensor import SIM_BUBBLE
+
 PRESET_NODES: dict[str, int] = {"coarse": 227, "medium": 390, "fine": 749}
 #: Mesh preset names, coarsest first (the one list config, daemon, eval and commands use).
 PRESETS: tuple[str, ...] = tuple(PRESET_NODES)
@@ -42,9 +44,9 @@ class MeshGeometry:
     a 114.5 mm x 80 mm footprint, dome top about 30 mm above the rim.
     """
 
-    semi_axis_x: float = 0.05725
-    semi_axis_y: float = 0.040
-    dome_height: float = 0.030
+    semi_axis_x: float = SIM_BUBBLE.semi_axis_x_m
+    semi_axis_y: float = SIM_BUBBLE.semi_axis_y_m
+    dome_height: float = SIM_BUBBLE.dome_height_m
 
     def height(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
         """Dome height z (m) over footprint points x, y (m); zero outside the rim."""

@@ -24,6 +24,50 @@ from dataclasses import dataclass
 
 #: Standard sea-level atmosphere (Pa): the simulator's ambient pressure.
 STANDARD_ATMOSPHERE_PA = 101325.0
+#: The standard atmosphere at the shared Punyo recording's altitude (Illinois, about 225 m):
+#: the barometric ambient nobody measured there, which makes the real rest gauge pressure
+#: about 7.9 kPa (the sensor reads 106.59 kPa absolute at rest).
+PUNYO_BAROMETRIC_AMBIENT_PA = 98650.0
+
+
+@dataclass(frozen=True)
+class BubblePhysics:
+    """The physical bubble: what the simulator builds (``bubble_rt.sim``: its default scene and
+    geometry read ``SIM.bubble``) and what was identified on a real sensor (``PUNYO.bubble``).
+
+    Attributes:
+        ambient_pa: true ambient pressure (Pa) around the sensor.
+        gauge_pressure_pa: rest (operating) gauge pressure (Pa) of the untouched bubble.
+        youngs_modulus_pa: the hyperelastic (incompressible neo-Hookean) membrane's Young's
+            modulus (Pa); the simulator's, not the estimator's linearised one.
+        thickness_m: membrane thickness (m).
+        poisson: membrane Poisson ratio (-); 0.5, incompressible rubber.
+        chamber_volume_m3: air volume (m^3) behind the membrane, besides the dome itself.
+        semi_axis_x_m, semi_axis_y_m: the rim, an ellipse in the plane z = 0 (m).
+        dome_height_m: the inflated dome's apex above the rim (m).
+        rest_dome_height_m: the stress-free dome's apex (m); inflating it to the rest gauge
+            pressure gives ``dome_height_m``.
+        camera: camera preset (``bubble_rt.camera.Camera.preset``).
+        camera_pose: camera -> mesh transform (4 x 4 rows), None for the preset's default.
+    """
+
+    ambient_pa: float
+    gauge_pressure_pa: float
+    youngs_modulus_pa: float
+    thickness_m: float
+    poisson: float
+    chamber_volume_m3: float
+    semi_axis_x_m: float
+    semi_axis_y_m: float
+    dome_height_m: float
+    rest_dome_height_m: float
+    camera: str = "d405"
+    camera_pose: tuple[tuple[float, ...], ...] | None = None
+
+    @property
+    def rest_pressure_pa(self) -> float:
+        """Absolute pressure (Pa) the sensor reads at rest."""
+        return self.ambient_pa + self.gauge_pressure_pa
 
 
 @dataclass(frozen=True)
@@ -32,11 +76,13 @@ class SensorProfile:
 
     Attributes:
         name: profile name ("sim", "punyo").
-        ambient_pa: ambient pressure (Pa) subtracted from absolute pressure readings.
-        youngs_modulus: the estimator's membrane Young's modulus (Pa).
+        ambient_pa: ambient pressure (Pa) the estimator subtracts from absolute pressure
+            readings (for ``punyo`` an effective one: see the module docstring).
+        youngs_modulus: the estimator's linearised membrane Young's modulus (Pa).
         thickness: membrane thickness (m).
         poisson: membrane Poisson ratio (-).
         doc: where the numbers come from.
+        bubble: the physical bubble (:class:`BubblePhysics`).
     """
 
     name: str
@@ -45,16 +91,65 @@ class SensorProfile:
     thickness: float
     poisson: float
     doc: str
+    bubble: BubblePhysics
 
+
+#: The simulator's default bubble. The rest dome is calibrated so that 5 kPa gauge inflates the
+#: membrane (E 1.3 MPa, t 0.65 mm, 114.5 x 80 mm footprint) to the 30 mm dome of the paper's
+#: mesh; the rim and dome are the Punyo's as the paper gives them.
+SIM_BUBBLE = BubblePhysics(
+    ambient_pa=STANDARD_ATMOSPHERE_PA,
+    gauge_pressure_pa=5000.0,
+    youngs_modulus_pa=1.3e6,
+    thickness_m=0.65e-3,
+    poisson=0.5,
+    chamber_volume_m3=1.0e-3,
+    semi_axis_x_m=0.05725,
+    semi_axis_y_m=0.040,
+    dome_height_m=0.030,
+    rest_dome_height_m=0.0225,
+)
+
+#: A real Punyo's bubble as identified from the shared real press by
+#: ``python3 -m bubble_rt.eval.press_physics ../shared/data/punyo-demo-0-press``
+#: (docs/sim-punyo.md): the rest dome's apex fitted to the real reference (30.47 mm); the rest
+#: gauge pressure, with the modulus in proportion to it (the sim's dome shape kept), that gives
+#: the real force for the real dent (4.78 N at 5.49 mm); the chamber volume that gives the real
+#: pressure rise for it (447 Pa, isothermal). The ambient is the rest reading (106.59 kPa) minus
+#: that gauge pressure, so the simulated sensor reads the real absolute pressure. The gauge
+#: pressure is *effective*: the barometric one would be about 7.9 kPa
+#: (``PUNYO_BAROMETRIC_AMBIENT_PA``), and no membrane modulus reproduces the real force and dent
+#: shape at that pressure (docs/sim-punyo.md).
+PUNYO_BUBBLE = BubblePhysics(
+    ambient_pa=92116.1,
+    gauge_pressure_pa=14470.4,
+    youngs_modulus_pa=3.762e6,
+    thickness_m=SIM_BUBBLE.thickness_m,
+    poisson=SIM_BUBBLE.poisson,
+    chamber_volume_m3=2.793e-4,
+    semi_axis_x_m=SIM_BUBBLE.semi_axis_x_m,
+    semi_axis_y_m=SIM_BUBBLE.semi_axis_y_m,
+    dome_height_m=0.03047,
+    rest_dome_height_m=0.022852,
+    camera="d405",
+    # bubble_rt.io.punyo.punyo_pose(): the camera tilted 25 degrees, rim plane 54 mm away.
+    camera_pose=(
+        (0.906307787, 0.0, 0.4226182617, -0.04025),
+        (0.0, 1.0, 0.0, 0.0),
+        (-0.4226182617, 0.0, 0.906307787, -0.054),
+        (0.0, 0.0, 0.0, 1.0),
+    ),
+)
 
 SIM = SensorProfile(
     name="sim",
-    ambient_pa=STANDARD_ATMOSPHERE_PA,
+    ambient_pa=SIM_BUBBLE.ambient_pa,
     youngs_modulus=0.66e6,
-    thickness=0.65e-3,
-    poisson=0.5,
+    thickness=SIM_BUBBLE.thickness_m,
+    poisson=SIM_BUBBLE.poisson,
     doc="the simulator's default bubble; E fitted for the linearised model on the "
     "calibration seeds (E 0.3-1.3 MPa scanned)",
+    bubble=SIM_BUBBLE,
 )
 
 PUNYO = SensorProfile(
@@ -66,10 +161,11 @@ PUNYO = SensorProfile(
     # docs/punyo-profile.md.
     ambient_pa=88900.0,
     youngs_modulus=0.66e6,
-    thickness=0.65e-3,
-    poisson=0.5,
+    thickness=PUNYO_BUBBLE.thickness_m,
+    poisson=PUNYO_BUBBLE.poisson,
     doc="rest tension (as an effective ambient pressure) identified on the real press of "
     "punyo-demo-0-press; membrane constants the simulator's (docs/punyo-profile.md)",
+    bubble=PUNYO_BUBBLE,
 )
 
 PROFILES: dict[str, SensorProfile] = {p.name: p for p in (SIM, PUNYO)}
@@ -93,6 +189,10 @@ def profile(name: str) -> SensorProfile:
 
 __all__ = [
     "PROFILES",
+    "PUNYO_BAROMETRIC_AMBIENT_PA",
+    "PUNYO_BUBBLE",
+    "SIM_BUBBLE",
+    "BubblePhysics",
     "PUNYO",
     "SIM",
     "STANDARD_ATMOSPHERE_PA",

@@ -42,6 +42,7 @@ FLAG_INVALID_DEPTH = 2
 FLAG_FLOW_UNRELIABLE = 4
 FLAG_NON_FINITE = 8
 FLAG_OUTLIER = 16
+FLAG_DEPTH_JUMP = 32
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,16 @@ class FlowSettings:
             membrane).
         outlier_m: a node whose U differs by more than this from the median of its measured
             neighbours is flagged (isolated depth/flow glitches); None disables.
+        jump_m: depth-jump tolerance along the camera ray, metres. A measured node is flagged
+            (FLAG_DEPTH_JUMP) when its displacement along its camera ray differs by more than
+            this both from the membrane around it (the harmonic interpolant of every other
+            measured node, rim clamped: :func:`leave_one_out_residual`) and from its own
+            displacement in the tracker's previous frame (0 after a new reference). It catches
+            what ``outlier_m`` cannot: a node whose neighbours are all unmeasured (near the rim
+            of a real Punyo's depth). Default 8 mm: on simulated presses a node stands out from
+            its surroundings by at most 5.0 mm (point indenter, medium mesh), the real depth
+            jumps are 18-19 mm (docs/phantom-forces.md). None disables; trackers without
+            depth images (the simulator's oracle) have no such check.
     """
 
     method: str = DEFAULT_FLOW_METHOD
@@ -96,6 +107,7 @@ class FlowSettings:
     clamp_rim: bool = True
     max_displacement_m: float = 0.03
     outlier_m: float | None = 0.004
+    jump_m: float | None = 0.008
 
     def __post_init__(self) -> None:
         if self.method not in FLOW_METHODS:
@@ -104,6 +116,8 @@ class FlowSettings:
             raise ValueError(f"flow scale must be in (0, 1], got {self.scale}")
         if self.margin_px < 0:
             raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
+        if self.jump_m is not None and not self.jump_m > 0:
+            raise ValueError(f"jump_m must be > 0 (or None), got {self.jump_m}")
 
     def farneback_params(self) -> dict[str, Any]:
         """Farneback parameters in effect (the heavy set for method "farneback_heavy")."""
@@ -279,8 +293,14 @@ def make_tracker(
 
 class NodeTracker:
     """What every tracker shares: the mesh, the reference, and turning raw per-node
-    displacements and flags into a :class:`Deformation` (outlier flags, rim clamp, harmonic
-    fill of the flagged nodes)."""
+    displacements and flags into a :class:`Deformation` (outlier and depth-jump flags, rim
+    clamp, harmonic fill of the flagged nodes).
+
+    Attributes:
+        rays: N x 3 unit camera rays through the reference nodes (mesh frame), the direction a
+            depth jump moves a lifted node along; None (no depth images, e.g. the simulator's
+            oracle): no depth-jump check.
+    """
 
     def __init__(self, mesh: Mesh, reference: Reference, settings: FlowSettings) -> None:
         self.mesh = mesh
@@ -291,10 +311,44 @@ class NodeTracker:
         self._rim = np.zeros(mesh.n_nodes, bool)
         self._rim[mesh.boundary] = True
         self._neighbours = _neighbour_table(self._laplacian)
+        self.rays: NDArray[np.float64] | None = None
+        self._previous = np.zeros_like(self.x_ref)
 
     def set_reference(self, reference: Reference) -> None:
         """Measure against a new reference from now on (tare)."""
         self.reference = reference
+        self.reset_history()
+
+    def reset_history(self) -> None:
+        """Forget the previous frames: the depth-jump check compares the next frame with the
+        reference (U = 0). Called by ``set_reference``."""
+        self._previous = np.zeros_like(self.x_ref)
+
+    @staticmethod
+    def _along_ray(
+        rays: NDArray[np.float64], V: NDArray[np.float64], nodes: NDArray[np.intp]
+    ) -> NDArray[np.float64]:
+        """|displacements ``V``| (len(nodes) x 3) of ``nodes`` along their ``rays`` (metres)."""
+        return np.abs(np.einsum("ij,ij->i", V, rays[nodes]))
+
+    def _depth_jumps(
+        self,
+        rays: NDArray[np.float64],
+        U: NDArray[np.float64],
+        known: NDArray[np.bool_],
+        tol: float,
+    ) -> NDArray[np.intp]:
+        """Measured nodes (``known`` minus the rim) whose displacement along the ray moved by
+        more than ``tol`` (m) since the previous frame and stands out by more than ``tol`` from
+        the membrane around it (``U``: N x 3, rim rows already 0 when clamped). The history
+        test runs first: it is a subtraction, the neighbour test a small solve."""
+        cand = np.flatnonzero(known & ~self._rim)
+        moved = self._along_ray(rays, U[cand] - self._previous[cand], cand) > tol
+        cand = cand[moved]
+        if len(cand) == 0:
+            return cand
+        r = leave_one_out_residual(self._laplacian, U, known, cand)
+        return cand[self._along_ray(rays, r, cand) > tol]
 
     def dp(self, frame: Frame) -> float:
         """Pressure change of ``frame`` against the reference, Pa."""
@@ -312,13 +366,18 @@ class NodeTracker:
             flags[np.linalg.norm(U, axis=1) > s.max_displacement_m] |= FLAG_OUTLIER
         if s.outlier_m is not None:
             flags[_neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
-        valid = flags == 0
-        known = valid.copy()
+        known = flags == 0
         Uk = U.copy()
         if s.clamp_rim:
             Uk[self._rim] = 0.0
             known |= self._rim
+        if s.jump_m is not None and self.rays is not None:
+            jumps = self._depth_jumps(self.rays, Uk, known, s.jump_m)
+            flags[jumps] |= FLAG_DEPTH_JUMP
+            known[jumps] = False
+        valid = flags == 0
         U = harmonic_fill(self._laplacian, Uk, known)
+        self._previous = U.copy()
         return Deformation(
             U=U,
             valid=valid,
@@ -367,6 +426,8 @@ class DeformationTracker(NodeTracker):
                 & (uv[:, 1] <= camera.height - 0.5)
             )
         self.visible = inside
+        ray = self.x_ref - camera.pose_matrix[:3, 3]
+        self.rays = ray / np.maximum(np.linalg.norm(ray, axis=1), 1e-12)[:, None]
         self._flow: Any = None
         self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
         self.set_reference(reference)
@@ -398,6 +459,7 @@ class DeformationTracker(NodeTracker):
             )
         self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
         self.reference = reference
+        self.reset_history()
 
     # ------------------------------------------------------------------ helpers
     def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
@@ -433,6 +495,48 @@ def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
     from scipy.ndimage import map_coordinates
 
     return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
+
+
+def leave_one_out_residual(
+    L: sp.csr_matrix, values: NDArray[np.float64], known: NDArray[np.bool_], nodes: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """For each of ``nodes`` (known ones), its value minus the harmonic interpolant of all the
+    other known rows at it: how far it sits from what the membrane around it says (k columns
+    of ``values``, N x k). Unknown nodes are eliminated (Kron reduction of ``L`` onto the known
+    set), so the answer holds however many of a node's own neighbours are unmeasured; with
+    every neighbour known it is the value minus the mean of the neighbours.
+
+    Args:
+        L: N x N graph Laplacian (D - A).
+        values: N x k; rows of unknown nodes are ignored.
+        known: N bool.
+        nodes: indices (known nodes) to evaluate.
+
+    Returns:
+        len(nodes) x k residuals (0 for a node cut off from every other known node).
+    """
+    vals = np.asarray(values, dtype=np.float64).reshape(len(known), -1)
+    nodes = np.asarray(nodes, dtype=np.intp)
+    if len(nodes) == 0:
+        return np.zeros((0, vals.shape[1]))
+    xk = np.where(known[:, None], vals, 0.0)
+    Lc = L[nodes]
+    y = np.asarray(Lc @ xk)  # row c of L applied to the known values
+    d = np.asarray(Lc[:, nodes].diagonal(), dtype=np.float64).copy()
+    iu = np.flatnonzero(~known)
+    if len(iu):
+        # Eliminate the unknown nodes: L~_CK = L_CK - L_CS L_SS^-1 L_SK.
+        Lcs = Lc[:, iu].toarray()
+        if Lcs.any():
+            Lss = L[iu][:, iu].toarray() + 1e-9 * np.eye(len(iu))
+            W = np.linalg.solve(Lss, Lcs.T)  # |S| x |C|
+            Lsk = L[iu]
+            y -= W.T @ np.asarray(Lsk @ xk)
+            d -= np.einsum("sc,sc->c", W, Lcs.T)
+    out = np.zeros_like(y)
+    ok = d > 1e-9
+    out[ok] = y[ok] / d[ok, None]
+    return out
 
 
 def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:

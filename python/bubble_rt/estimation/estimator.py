@@ -79,7 +79,7 @@ class EstimatorConfig:
     k_const: float = 2000.0
     k_linear: float = 2.0
     k_peak: float = 0.5
-    inflation_pa: float = 5000.0
+    inflation_pa: float = SIM.bubble.gauge_pressure_pa
     ambient_pa: float = SIM.ambient_pa
     solver: SolverSettings = field(default_factory=SolverSettings)
 

@@ -56,7 +56,10 @@ class SolverSettings:
             objective - optimum <= eps_abs + eps_rel * objective.
         max_iter: iteration cap ("max_iter_reached" status, the last iterate is returned).
         check_interval: iterations between termination checks.
-        time_limit: seconds per solve, 0 = none ("time_limit_reached" status).
+        time_limit: seconds per warm-started solve, 0 = none ("time_limit_reached" status).
+            A cold solve (the first, or after ``cold_start``) runs to certification or
+            ``max_iter``: stopped early, its multipliers sit on their bounds at most nodes and
+            the support read from them is noise.
         scaling_iter: Ruiz equilibration passes (0 = a scalar non-dimensionalisation only).
         warm_start: start each solve from the previous frame's solution.
         anderson_memory: Anderson acceleration memory on the ADMM fixed-point map (0 = off);

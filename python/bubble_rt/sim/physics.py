@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bubble_rt.mesh import Mesh, MeshGeometry
+from bubble_rt.sensor import SIM_BUBBLE
 from bubble_rt.sim.indenters import Indenter
 
 __all__ = [
@@ -60,9 +61,8 @@ Array = NDArray[np.float64]
 
 #: Node count of the default simulation mesh.
 DEFAULT_NODES = 2000
-#: Dome height (m) of the stress-free rest shape; calibrated so that 5 kPa gauge inflates the
-#: default membrane (E 1.3 MPa, t 0.65 mm, 114.5 x 80 mm footprint) to a 30 mm dome.
-DEFAULT_REST_DOME_HEIGHT = 0.0225
+#: Dome height (m) of the stress-free rest shape (``bubble_rt.sensor.SIM_BUBBLE``).
+DEFAULT_REST_DOME_HEIGHT = SIM_BUBBLE.rest_dome_height_m
 #: Chamber volume (m^3) behind the membrane; calibrated so a ~4.5 N push with the round
 #: indenter raises the pressure by about 0.45 kPa, as on the real sensor.
 DEFAULT_CHAMBER_VOLUME = 1.45e-3
@@ -88,8 +88,8 @@ class SimConvergenceError(RuntimeError):
 class MembraneMaterial:
     """Membrane: Young's modulus ``E`` (Pa), thickness ``thickness`` (m); incompressible."""
 
-    E: float = 1.3e6
-    thickness: float = 0.65e-3
+    E: float = SIM_BUBBLE.youngs_modulus_pa
+    thickness: float = SIM_BUBBLE.thickness_m
 
     def __post_init__(self) -> None:
         if not (self.E > 0 and self.thickness > 0):
@@ -105,8 +105,8 @@ class MembraneMaterial:
 class GasSettings:
     """Enclosed air: operating gauge pressure (Pa), ambient (Pa), chamber volume (m^3)."""
 
-    gauge_pressure_pa: float = 5000.0
-    atmospheric_pa: float = 101325.0
+    gauge_pressure_pa: float = SIM_BUBBLE.gauge_pressure_pa
+    atmospheric_pa: float = SIM_BUBBLE.ambient_pa
     chamber_volume_m3: float = DEFAULT_CHAMBER_VOLUME
     compressible: bool = True
 
@@ -234,11 +234,15 @@ class SimState:
         return self.contact_forces.sum(axis=0)
 
 
-def default_rest_mesh(n_nodes: int = DEFAULT_NODES, geometry: MeshGeometry | None = None) -> Mesh:
-    """The stress-free rest shape: the bubble footprint with a ``DEFAULT_REST_DOME_HEIGHT`` dome
-    (inflating it to 5 kPa gives the 30 mm operating dome)."""
+def default_rest_mesh(
+    n_nodes: int = DEFAULT_NODES,
+    geometry: MeshGeometry | None = None,
+    rest_dome_height_m: float = DEFAULT_REST_DOME_HEIGHT,
+) -> Mesh:
+    """The stress-free rest shape: the bubble footprint with a ``rest_dome_height_m`` dome
+    (the default's, inflated to 5 kPa, gives the 30 mm operating dome)."""
     g = geometry or MeshGeometry()
-    return Mesh.generate(n_nodes, replace(g, dome_height=DEFAULT_REST_DOME_HEIGHT))
+    return Mesh.generate(n_nodes, replace(g, dome_height=rest_dome_height_m))
 
 
 def _skew_free_pose(pose: Array) -> Array:

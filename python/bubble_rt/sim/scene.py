@@ -1,6 +1,8 @@
 """Scenes: what to simulate, read from TOML.
 
-A scene names the sensor, the physics settings, the indenter, its trajectory, the effects to
+A scene names the sensor profile (``profile``: "sim", the default, or "punyo"; its bubble,
+``bubble_rt.sensor.BubblePhysics``, gives the defaults of ``[physics]`` and of the camera), the
+sensor, the physics settings, the indenter, its trajectory, the effects to
 simulate (nothing else is computed), the seed and the number of frames. Built-in scenes ship in
 ``bubble_rt/scenes/*.toml`` and are loaded by name (``load_scene("demo")``); any other argument
 is read as a file path. Errors raise ``SceneError`` naming the offending key (e.g.
@@ -16,6 +18,8 @@ from dataclasses import asdict, dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
+
+from bubble_rt.sensor import PROFILES, SIM_BUBBLE, BubblePhysics
 
 #: Every effect a scene may name, with its parameters and their defaults.
 EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
@@ -81,12 +85,31 @@ class PhysicsSpec:
     coefficient, effect parameter ``mu``) and gas compressibility only take effect when the
     effects "friction" / "gas_compression" are named."""
 
-    gauge_pressure_pa: float = 5000.0
-    atmospheric_pa: float = 101325.0
-    chamber_volume_m3: float = 1.0e-3
-    youngs_modulus_pa: float = 1.3e6
-    thickness_m: float = 0.65e-3
+    gauge_pressure_pa: float = SIM_BUBBLE.gauge_pressure_pa
+    atmospheric_pa: float = SIM_BUBBLE.ambient_pa
+    chamber_volume_m3: float = SIM_BUBBLE.chamber_volume_m3
+    youngs_modulus_pa: float = SIM_BUBBLE.youngs_modulus_pa
+    thickness_m: float = SIM_BUBBLE.thickness_m
     penalty: float | None = None
+    #: Apex (m) of the stress-free dome (``bubble_rt.sim.physics.default_rest_mesh``).
+    rest_dome_height_m: float = SIM_BUBBLE.rest_dome_height_m
+
+    @classmethod
+    def of(cls, bubble: BubblePhysics) -> PhysicsSpec:
+        """The physics of a sensor profile's bubble."""
+        return cls(
+            gauge_pressure_pa=bubble.gauge_pressure_pa,
+            atmospheric_pa=bubble.ambient_pa,
+            chamber_volume_m3=bubble.chamber_volume_m3,
+            youngs_modulus_pa=bubble.youngs_modulus_pa,
+            thickness_m=bubble.thickness_m,
+            rest_dome_height_m=bubble.rest_dome_height_m,
+        )
+
+
+#: PhysicsSpec fields added after caches keyed on the others existed: at these values they stay
+#: out of ``Scene.physics_key``, so the physics of existing scenes keeps its cache entry.
+_KEY_FREE_DEFAULTS: dict[str, float] = {"rest_dome_height_m": SIM_BUBBLE.rest_dome_height_m}
 
 
 @dataclass(frozen=True)
@@ -147,6 +170,8 @@ class Scene:
     physics: PhysicsSpec = field(default_factory=PhysicsSpec)
     indenter: IndenterSpec = field(default_factory=IndenterSpec)
     effects: tuple[tuple[str, tuple[tuple[str, float], ...]], ...] = ()
+    #: The sensor profile (``bubble_rt.sensor``) whose bubble this scene simulates.
+    profile: str = "sim"
 
     # ------------------------------------------------------------------ queries
     @property
@@ -177,7 +202,11 @@ class Scene:
             "version": version,
             "physics_revision": PHYSICS_REVISION,
             "sim_nodes": self.sensor.sim_nodes,
-            "physics": asdict(self.physics),
+            "physics": {
+                k: v
+                for k, v in asdict(self.physics).items()
+                if not (k in _KEY_FREE_DEFAULTS and v == _KEY_FREE_DEFAULTS[k])
+            },
             "indenter": asdict(self.indenter),
             "trajectory": asdict(self.trajectory),
             "frames": self.frames,
@@ -279,6 +308,7 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         data,
         (
             "name",
+            "profile",
             "seed",
             "frames",
             "sensor",
@@ -294,19 +324,27 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     if not isinstance(name, str) or not name:
         raise SceneError(f"name: expected a non-empty string, got {name!r}")
     seed = _int(data, "seed", "", 0)
+    prof = data.get("profile", "sim")
+    if not isinstance(prof, str) or prof not in PROFILES:
+        raise SceneError(f"profile: unknown sensor profile {prof!r}; known: {', '.join(PROFILES)}")
+    bubble = PROFILES[prof].bubble
 
     sd = _table(data, "sensor")
     _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture_seed"), "sensor.")
-    camera = sd.get("camera", "d405")
+    camera = sd.get("camera", bubble.camera)
     from bubble_rt.camera import Camera
 
     try:
         Camera.preset(camera)
     except (ValueError, TypeError) as exc:
         raise SceneError(f"sensor.camera: {exc}") from exc
-    pose = sd.get("camera_pose")
+    pose = sd.get("camera_pose", bubble.camera_pose)
     if pose is not None:
-        if not (isinstance(pose, list) and len(pose) == 4 and all(len(r) == 4 for r in pose)):
+        if not (
+            isinstance(pose, list | tuple)
+            and len(pose) == 4
+            and all(isinstance(r, list | tuple) and len(r) == 4 for r in pose)
+        ):
             raise SceneError("sensor.camera_pose: expected a 4 x 4 list of numbers")
         try:
             Camera.preset(camera, pose=tuple(tuple(float(x) for x in r) for r in pose))
@@ -330,7 +368,7 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     pd = _table(data, "physics")
     pkeys = tuple(PhysicsSpec.__dataclass_fields__)
     _no_unknown(pd, pkeys, "physics.")
-    dflt = PhysicsSpec()
+    dflt = PhysicsSpec.of(bubble)
     physics = PhysicsSpec(
         gauge_pressure_pa=_num(pd, "gauge_pressure_pa", "physics.", dflt.gauge_pressure_pa, True),
         atmospheric_pa=_num(pd, "atmospheric_pa", "physics.", dflt.atmospheric_pa, True),
@@ -338,6 +376,9 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         youngs_modulus_pa=_num(pd, "youngs_modulus_pa", "physics.", dflt.youngs_modulus_pa, True),
         thickness_m=_num(pd, "thickness_m", "physics.", dflt.thickness_m, True),
         penalty=_num(pd, "penalty", "physics.", positive=True) if "penalty" in pd else None,
+        rest_dome_height_m=_num(
+            pd, "rest_dome_height_m", "physics.", dflt.rest_dome_height_m, True
+        ),
     )
 
     indenter = _parse_indenter(_table(data, "indenter"))
@@ -362,6 +403,7 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         physics=physics,
         indenter=indenter,
         effects=effects,
+        profile=prof,
     )
 
 

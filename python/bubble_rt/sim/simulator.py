@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 class PhysicsBackend(Protocol):
     """What the simulator needs from the membrane physics (bubble_rt.sim.physics)."""
 
-    def rest_mesh(self, sim_nodes: int) -> Mesh: ...
+    def rest_mesh(self, sim_nodes: int, rest_dome_height_m: float) -> Mesh: ...
 
     def create(self, scene: Scene, rest_mesh: Mesh) -> Any:
         """An object with ``.inflate() -> state`` and ``.solve(indenter, pose) -> state``."""
@@ -46,10 +46,10 @@ class PhysicsBackend(Protocol):
 class DefaultPhysics:
     """Adapter to bubble_rt.sim.physics and bubble_rt.sim.indenters (the simphys engineer's)."""
 
-    def rest_mesh(self, sim_nodes: int) -> Mesh:
+    def rest_mesh(self, sim_nodes: int, rest_dome_height_m: float) -> Mesh:
         import bubble_rt.sim.physics as physics
 
-        return physics.default_rest_mesh(sim_nodes)
+        return physics.default_rest_mesh(sim_nodes, rest_dome_height_m=rest_dome_height_m)
 
     def create(self, scene: Scene, rest_mesh: Mesh) -> Any:
         import bubble_rt.sim.physics as physics
@@ -203,7 +203,7 @@ class Simulator:
 
     def _simulate_physics(self) -> PhysicsRun:
         sc = self.scene
-        rest = self.physics.rest_mesh(sc.sensor.sim_nodes)
+        rest = self.physics.rest_mesh(sc.sensor.sim_nodes, sc.physics.rest_dome_height_m)
         sim = self.physics.create(sc, rest)
         ind = self.physics.indenter(sc.indenter)
         ref = sim.inflate()
