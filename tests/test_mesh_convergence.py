@@ -20,7 +20,7 @@ from bubble_rt.mesh import Mesh
 NODES = (227, 390, 749)
 #: vertex noise of a fitted mesh normal to the surface (m): about the real press's meshes'
 FIT_NOISE = 0.2e-3
-#: rest gauge pressure (Pa): the Punyo profile's on the shared press
+#: rest gauge pressure (Pa): about the Punyo profile's effective one on the shared press (17.7-25 kPa)
 GAUGE = 25e3
 TOLERANCE = 0.10
 
