@@ -155,10 +155,11 @@ SIM = SensorProfile(
 PUNYO = SensorProfile(
     name="punyo",
     # `bubble-rt calibrate --recording ../shared/data/punyo-demo-0-press --fit ambient_pa`
-    # (81485 Pa): a rest gauge pressure of about 25 kPa over the 106.6 kPa read at rest, where
-    # a sea-level ambient would give 5.3 kPa and read half the force. Effective, not a
-    # barometer reading: docs/punyo-profile.md.
-    ambient_pa=81500.0,
+    # (88926 Pa, with the rest tension from the cap's force balance): a rest gauge pressure of
+    # about 17.7 kPa over the 106.6 kPa read at rest, where a sea-level ambient would give
+    # 5.3 kPa and read about half the force. Effective, not a barometer reading:
+    # docs/punyo-profile.md.
+    ambient_pa=88900.0,
     youngs_modulus=0.66e6,
     thickness=PUNYO_BUBBLE.thickness_m,
     poisson=PUNYO_BUBBLE.poisson,
