@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 from bubble_rt.camera import Camera
+from bubble_rt.eval.tasks import SimTrajectory
 from bubble_rt.frames import Frame
 
 HPA = 100.0
@@ -94,3 +95,22 @@ def write_mcap(path: Path, frames: list[Frame], reference: list[Frame], camera: 
 
     write_recording(path, stamp(frames, 1000.0), camera, reference=stamp(reference, 900.0))
     return path
+
+
+def stiffer_trajectory(
+    geometry: str, trajectory: int, n_frames: int, seed: int, factor: float, n_reference: int
+) -> SimTrajectory:
+    """A dataset trajectory (``bubble_rt.eval.trajectory_scene``) simulated with the membrane's
+    Young's modulus scaled by ``factor`` (the scene's ``PhysicsSpec.youngs_modulus_pa``), depth
+    beyond the camera's range as invalid (:func:`saturated_to_invalid`)."""
+    from bubble_rt.eval import trajectory_scene
+    from bubble_rt.sim.simulator import Simulator
+
+    scene = trajectory_scene(geometry, trajectory, n_frames, seed)
+    physics = replace(scene.physics, youngs_modulus_pa=factor * scene.physics.youngs_modulus_pa)
+    sim = Simulator(replace(scene, physics=physics))
+    return SimTrajectory(
+        frames=saturated_to_invalid(list(sim.frames())),
+        reference_frames=saturated_to_invalid(sim.reference_frames(n_reference)),
+        camera=sim.camera,
+    )

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.eval import (
+    LIGHT_TOUCH_RANGE_N,
+    UNTOUCHED_N,
     FanOut,
     aggregate,
     contact_iou,
@@ -156,16 +158,101 @@ def test_aggregate_light_touch_and_false_contacts():
     assert st["light_touch_rate"] == pytest.approx(0.5)
     assert st["false_contact_rate"] == pytest.approx(0.5)
     assert st["false_nodes"] == pytest.approx(1.0)
+    assert (st["n_light"], st["n_untouched"]) == (2, 2)
     # IoUs 0.5, 0, 1, 0 -> mean 0.375 (the all-empty frame is excluded)
     assert st["miou"] == pytest.approx(0.375)
     assert st["force_err_n"] == pytest.approx((0 + 0.5 + 1 + 0.2 + 0) / 5)
     assert st["force_err_contact_n"] == pytest.approx(1.5 / 3)
 
 
+def test_touch_between_truth_nodes_is_a_light_touch_not_a_false_contact():
+    """An indenter pressing 0.5 N between estimator nodes leaves the truth's node mask empty:
+    marking contact there detects a touch, it is no false contact."""
+    st = aggregate([_rec("point", "fem", [0, 0, -0.45], [0, 0, -0.5], [1, 0, 0], [0, 0, 0])])
+    assert st["light_touch_rate"] == 1.0 and st["n_light"] == 1
+    assert st["n_untouched"] == 0 and math.isnan(st["false_contact_rate"])
+    assert st["force_err_contact_n"] == pytest.approx(0.05)
+
+
+def test_false_contacts_count_only_frames_under_the_untouched_threshold():
+    below = 0.9 * UNTOUCHED_N
+    recs = [
+        # truly untouched (a residual force under the threshold), contact marked: false
+        _rec("round", "fem", [0, 0, -0.1], [0, 0, -below], [1, 1, 1], [0, 0, 0]),
+        # truly untouched, nothing marked
+        _rec("round", "fem", [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]),
+        # exactly at the threshold: touched, neither untouched nor (under 0.1 N) light
+        _rec("round", "fem", [0, 0, -0.1], [0, 0, -UNTOUCHED_N], [1, 0, 0], [0, 0, 0]),
+    ]
+    st = aggregate(recs)
+    assert st["n_untouched"] == 2 and st["false_contact_rate"] == pytest.approx(0.5)
+    assert st["false_nodes"] == pytest.approx(1.5)  # (3 + 0) contact nodes over 2 frames
+    assert st["n_light"] == 0 and math.isnan(st["light_touch_rate"])
+
+
+def test_light_touch_range_is_inclusive_and_ignores_the_truth_mask():
+    lo, hi = LIGHT_TOUCH_RANGE_N
+    marked, quiet = [1, 0], [0, 0]
+    recs = [
+        _rec("line", "fem", [0, 0, -lo], [0, 0, -lo], marked, quiet),  # in (bound), detected
+        _rec("line", "fem", [0, 0, -hi], [0, 0, -hi], quiet, [1, 1]),  # in (bound), missed
+        _rec("line", "fem", [0, 0, -1], [0, 0, -0.99 * lo], marked, quiet),  # below the range
+        _rec("line", "fem", [0, 0, -2], [0, 0, -1.01 * hi], quiet, [1, 1]),  # above the range
+        _rec("line", "fem", [0, 0, -1], [0.6, 0.0, -0.8], marked, quiet),  # |f| = 1 N, tilted
+    ]
+    st = aggregate(recs)
+    assert st["n_light"] == 3
+    assert st["light_touch_rate"] == pytest.approx(2 / 3)
+
+
+def test_average_pools_light_and_untouched_frames_over_indenters():
+    recs = [
+        # round: 1 light touch, detected; 1 untouched frame, quiet
+        _rec("round", "fem", [0, 0, -1], [0, 0, -1], [1, 0], [1, 0]),
+        _rec("round", "fem", [0, 0, 0], [0, 0, 0], [0, 0], [0, 0], frame=1),
+        # point: 3 light touches, 1 detected; 3 untouched frames, 1 with contact
+        *[
+            _rec("point", "fem", [0, 0, -1], [0, 0, -1], [k == 0, 0], [1, 0], frame=k)
+            for k in range(3)
+        ],
+        *[
+            _rec("point", "fem", [0, 0, 0], [0, 0, 0], [k == 0, 0], [0, 0], frame=3 + k)
+            for k in range(3)
+        ],
+    ]
+    av = summarize(recs)["average"]["fem"]
+    # (1 + 1) of 4 light frames (not the indenters' mean (1 + 1/3) / 2); 1 of 4 untouched
+    assert av["light_touch_rate"] == pytest.approx(0.5)
+    assert av["false_contact_rate"] == pytest.approx(0.25)
+    assert av["false_nodes"] == pytest.approx(0.25)
+    assert (av["n_light"], av["n_untouched"], av["n_frames"]) == (4, 4, 8)
+
+
+def test_table_and_summary_state_the_thresholds_and_frame_counts():
+    recs = [
+        _rec("round", "fem", [0, 0, -1], [0, 0, -1], [1, 0], [1, 0]),
+        _rec("round", "fem", [0, 0, 0], [0, 0, 0], [0, 0], [0, 0], frame=1),
+        _rec("round", "fem", [0, 0, -3], [0, 0, -3], [1, 0], [1, 0], frame=2),
+    ]
+    s = summarize(recs)
+    assert s["thresholds"] == {
+        "untouched_below_n": UNTOUCHED_N,
+        "light_touch_n": list(LIGHT_TOUCH_RANGE_N),
+    }
+    table = markdown_table(s)
+    assert f"false contact (< {UNTOUCHED_N:g} N)" in table
+    assert "light det. (0.1-1.5 N)" in table
+    # frames, light, untouched
+    assert "| round |" in table and table.split("| round |")[1].split("\n")[0].endswith(
+        "| 3 | 1 | 1 |"
+    )
+
+
 def test_aggregate_without_light_touches_is_nan():
     st = aggregate([_rec("round", "fem", [0, 0, -4], [0, 0, -5.0], [1], [1])])
     assert math.isnan(st["light_touch_rate"])
     assert math.isnan(st["false_contact_rate"])
+    assert st["n_light"] == 0 and st["n_untouched"] == 0
 
 
 def test_summarize_keys_and_unweighted_average():
@@ -245,6 +332,7 @@ def test_eval_command_end_to_end_on_a_tiny_dataset(tmp_path):
     for e in ("fem", "frictionless"):
         assert {"miou", "force_err_n", "normal_err_n", "shear_err_n"} <= set(doc["average"][e])
     assert doc["throughput"]["frames"] == 12
+    assert doc["thresholds"]["untouched_below_n"] == UNTOUCHED_N
     assert (figs / "net_force_round.png").stat().st_size > 0
     assert (figs / "contact_point.png").stat().st_size > 0
 

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from _sim_fake import FakePhysics, small_scene
 from bubble_rt.sim import effects
+from bubble_rt.sim.scene import EFFECT_DEFAULTS
 from bubble_rt.sim.simulator import Simulator
+
+
+def effects_defaults(name: str) -> dict[str, float]:
+    return dict(EFFECT_DEFAULTS[name])
 
 
 @pytest.fixture(autouse=True)
@@ -76,7 +81,9 @@ def test_depth_noise_changes_only_depth(base):
 
 
 def test_depth_dropouts_change_only_depth(base):
-    rgb, depth, p, _ = images(run('["depth_dropouts"]')[1])
+    # A uniform 10 % (no near-range limit, no fall-off) with saturated outliers.
+    eff = "{ depth_dropouts = { fraction = 0.10, near_m = 0, far_m = 0, outlier_fraction = 2e-4 } }"
+    rgb, depth, p, _ = images(run(eff)[1])
     assert np.array_equal(rgb, base[0]) and np.array_equal(p, base[2])
     valid0 = base[1] > 0
     dropped = valid0 & (depth == 0)
@@ -90,7 +97,8 @@ def test_rgb_noise_changes_only_rgb(base):
     rgb, depth, p, _ = images(run('["rgb_noise"]')[1])
     assert np.array_equal(depth, base[1]) and np.array_equal(p, base[2])
     d = rgb.astype(float) - base[0].astype(float)
-    assert 1.5 < d[base[1] > 0].std() < 2.5
+    sigma = effects_defaults("rgb_noise")["sigma"]
+    assert 0.85 * sigma < d[base[1] > 0].std() < 1.1 * sigma
 
 
 def test_exposure_drift_changes_only_rgb(base):
@@ -151,3 +159,107 @@ def test_pressure_noise_has_the_requested_spread():
     rng = np.random.default_rng(0)
     x = effects.pressure_noise(np.full(20000, 1e5), {"sigma_pa": 5.0}, rng)
     assert abs(x.std() - 5.0) < 0.2
+
+
+# ---------------------------------------------------------------------- the D405 models
+def test_depth_noise_rounds_to_the_depth_unit():
+    rng = np.random.default_rng(0)
+    z = np.full((100, 100), 0.08, np.float32)
+    out = effects.depth_noise(z, {"sigma_m": 5e-5, "sigma_per_m2": 0.0, "step_m": 1e-4}, rng, 0.0)
+    steps = out / np.float32(1e-4)
+    assert np.allclose(steps, np.round(steps), atol=1e-3)
+    assert len(np.unique(np.round(steps))) >= 2  # the noise still moves pixels across a step
+
+
+def ramp_depth() -> np.ndarray:
+    """A plane tilted from 50 mm (left) to 100 mm (right), 480 x 640."""
+    return np.tile(np.linspace(0.05, 0.10, 640, dtype=np.float32), (480, 1))
+
+
+D405_DROPOUTS = EFFECT_DEFAULTS["depth_dropouts"]
+
+
+def dropped_by_range(out: np.ndarray, z: np.ndarray, lo: float, hi: float) -> float:
+    m = (z >= lo) & (z < hi)
+    return float((out[m] == 0).mean())
+
+
+def test_depth_dropouts_follow_the_near_range_limit():
+    z = ramp_depth()
+    p = dict(D405_DROPOUTS)
+    out = effects.depth_dropouts(z, p, effects.effect_rng(0, "d", 1), 0.0)
+    near, w = p["near_m"], p["near_width_m"]
+    assert dropped_by_range(out, z, 0.05, near - 3 * w) > 0.9  # below the D405's reach
+    assert 0.2 < dropped_by_range(out, z, near - w, near + w) < 0.8  # a ragged edge
+    mid = 0.5 * (near + p["far_m"])
+    assert 0.2 * p["fraction"] < dropped_by_range(out, z, mid - 0.002, mid + 0.002) < p["fraction"]
+    assert dropped_by_range(out, z, p["far_m"] + 0.001, 0.10) == 0.0  # no holes far out
+    kept = out > 0
+    assert np.array_equal(out[kept], z[kept])
+
+
+def test_depth_dropouts_stay_put_frame_to_frame():
+    z = ramp_depth()
+    field = effects.scene_field(3, "depth_dropouts", z.shape, D405_DROPOUTS["blob_px"])
+    a, b = (
+        effects.depth_dropouts(z, D405_DROPOUTS, effects.effect_rng(3, "d", k), 0.0, field=field)
+        for k in (1, 2)
+    )
+    ha, hb = a == 0, b == 0
+    iou = (ha & hb).sum() / (ha | hb).sum()
+    assert 0.85 < iou < 1.0  # the same holes, their edges flicker
+
+
+JUMPS = EFFECT_DEFAULTS["depth_jumps"]
+
+
+def holed_plane() -> np.ndarray:
+    """A plane at 80 mm with a 60 x 60 px hole in the middle."""
+    z = np.full((200, 200), 0.08, np.float32)
+    z[70:130, 70:130] = 0.0
+    return z
+
+
+def test_depth_jumps_read_behind_the_surface_at_hole_edges():
+    z = holed_plane()
+    p = dict(JUMPS, rate=0.3)
+    out = effects.depth_jumps(z, p, effects.effect_rng(0, "depth_jumps", 5), 0.0)
+    changed = out != z
+    assert changed.any()
+    # Only in the band around the hole's edge, on both sides, mostly inside the hole.
+    ys, xs = np.nonzero(changed)
+    ring = np.maximum(np.abs(ys - 99.5), np.abs(xs - 99.5))
+    assert ring.min() >= 30 - p["edge_px"] - 1 and ring.max() <= 30 + p["edge_px"] + 1
+    assert (z[changed] == 0).mean() > 0.7
+    excess = out[changed] - 0.08
+    assert np.abs(excess).max() <= p["max_m"] + 1e-6
+    assert 0.3 * p["scale_m"] < np.median(np.abs(excess)) < 1.5 * p["scale_m"]
+    assert abs((excess > 0).mean() - p["behind_share"]) < 0.1  # most read behind
+
+
+def test_depth_jumps_need_holes_and_a_rate():
+    full = np.full((100, 100), 0.08, np.float32)
+    rng = effects.effect_rng(0, "depth_jumps", 1)
+    assert np.array_equal(effects.depth_jumps(full, dict(JUMPS), rng, 0.0), full)
+    z = holed_plane()
+    assert np.array_equal(effects.depth_jumps(z, dict(JUMPS, rate=0.0), rng, 0.0), z)
+
+
+def test_depth_jumps_change_only_depth_and_are_seeded(base):
+    eff = '["depth_dropouts", "depth_jumps"]'
+    holes = images(run('["depth_dropouts"]')[1])
+    a, b, c = (images(run(eff, seed=s)[1]) for s in (0, 0, 1))
+    assert np.array_equal(a[0], base[0]) and np.array_equal(a[2], base[2])
+    assert not np.array_equal(a[1], holes[1])  # it ran, on the depth
+    assert np.array_equal(a[1], b[1]) and not np.array_equal(a[1], c[1])
+
+
+def test_rgb_noise_is_correlated_across_channels_and_neighbours():
+    rgb = np.full((300, 300, 3), 128, np.uint8)
+    p = effects_defaults("rgb_noise")
+    d = effects.rgb_noise(rgb, p, np.random.default_rng(0), 0.0).astype(float) - 128
+    ch = np.corrcoef(d[..., 0].ravel(), d[..., 1].ravel())[0, 1]
+    h = np.corrcoef(d[:, :-1, 1].ravel(), d[:, 1:, 1].ravel())[0, 1]
+    v = np.corrcoef(d[:-1, :, 1].ravel(), d[1:, :, 1].ravel())[0, 1]
+    assert abs(ch - p["channel_corr"]) < 0.05
+    assert abs(h - p["h_corr"]) < 0.05 and abs(v) < 0.03

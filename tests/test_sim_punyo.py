@@ -117,8 +117,8 @@ def test_dataset_scenes_simulate_the_named_profiles_bubble():
 def test_punyo_profile_reads_the_simulated_punyo_press():
     """The ``punyo`` profile's estimator constants, chosen on other simulated Punyo presses
     (bench/punyo_profile_fit.py: the dataset's indenters on calibration seeds, not this scene),
-    read the scene "punyo" press (the real press's sphere, place and depth) within 15 %, where
-    the bubble's true rest gauge pressure with the same modulus reads well under it: the
+    read the scene "punyo" press (the real press's sphere, place and depth) within 15 %, and
+    the bubble's true rest gauge pressure with the same modulus reads at least 10 % less: the
     linearised model needs an effective rest tension."""
     pairs = estimator_on_press(load_scene("punyo"), PUNYO.ambient_pa, PUNYO.youngs_modulus)
     ratios = [est / true for true, est in pairs if true >= 1.0]
@@ -130,4 +130,4 @@ def test_punyo_profile_reads_the_simulated_punyo_press():
     ratio_true = float(np.median([est / true for true, est in true_gauge if true >= 1.0]))
     print(f"scene punyo: profile reads {ratio:.2f}, the true gauge pressure {ratio_true:.2f}")
     assert abs(ratio - 1) <= PROFILE_TOLERANCE
-    assert ratio_true < 1 - PROFILE_TOLERANCE
+    assert ratio_true < 0.9 * ratio

@@ -1,12 +1,16 @@
 """`bubble-rt calibrate`: fit E, k_f, k_u with the paper's loss, to simulated ground truth or
-(``--recording``) to recordings that carry a force/torque wrench."""
+(``--recording``) to recordings that carry a force/torque wrench (there the ambient pressure,
+which sets the rest tension, and the F/T rotation are fitted too by default)."""
 
 from __future__ import annotations
 
 import argparse
 import os
 
-HELP = "calibrate E, k_f, k_u on simulated trajectories or wrench recordings; writes a TOML config"
+HELP = (
+    "calibrate E, k_f, k_u on simulated trajectories, or with the ambient pressure and the F/T "
+    "rotation on wrench recordings; writes a TOML config"
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,9 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-frames", type=int, default=0, help="scored frames per recording (0: all)")
     g.add_argument(
         "--fit",
-        default="E,k_f,k_u,ambient_pa",
-        help="parameters to fit, comma-separated, of E, k_f, k_u, ambient_pa (the ambient "
-        "pressure sets the rest tension); the others keep the estimator's defaults",
+        default=None,
+        help="parameters to fit, comma-separated, of E, k_f, k_u, ambient_pa (default: all; "
+        "the ambient pressure sets the rest tension); the others keep the estimator's defaults",
     )
 
 
@@ -145,7 +149,11 @@ def run_recordings(args: argparse.Namespace) -> int:
                 bound=args.bound,
                 fan=fan,
                 progress=not args.no_progress,
-                fit=[k.strip() for k in args.fit.split(",") if k.strip()],
+                fit=(
+                    rc.FIT_PARAMS
+                    if args.fit is None
+                    else [k.strip() for k in args.fit.split(",") if k.strip()]
+                ),
             )
     except rc.WrenchCalibrationError as exc:
         print(f"bubble-rt calibrate: {exc}", file=sys.stderr)

@@ -67,8 +67,8 @@ from bubble_rt.eval.calibration import (
     worker_estimator,
 )
 
-#: What ``calibrate --recording`` can fit: the paper's three and the ambient pressure, which
-#: sets the rest tension.
+#: What ``calibrate --recording`` fits, all of them by default: the paper's three and the
+#: ambient pressure, which sets the rest tension (the F/T rotation too, unless given).
 FIT_PARAMS = (*PARAMS, "ambient_pa")
 
 
@@ -453,7 +453,7 @@ def calibrate_recordings(
     step: float = 0.5,
     fan: FanOut | None = None,
     progress: bool = False,
-    fit: Sequence[str] = ("E", "k_f", "k_u", "ambient_pa"),
+    fit: Sequence[str] = FIT_PARAMS,
 ) -> RecordingCalibration:
     """Minimise the recording loss over the logarithms of the ``fit`` parameters (of
     :data:`FIT_PARAMS`; as :func:`calibrate`), the others held at ``initial`` (default: the

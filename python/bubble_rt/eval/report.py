@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from bubble_rt.eval.metrics import FrameMetrics, contact_iou
+from bubble_rt.eval.metrics import LIGHT_TOUCH_RANGE_N, UNTOUCHED_N, FrameMetrics, contact_iou
 from bubble_rt.eval.tasks import TrajectoryResult
 
 
@@ -19,22 +19,26 @@ def _fmt(x: float, digits: int = 3) -> str:
 
 
 def markdown_table(summary: dict[str, Any]) -> str:
-    """The accuracy table: one row per geometry (and the average), columns per estimator."""
+    """The accuracy table: one row per geometry (and the average), columns per estimator, and
+    the frame counts (all, light touches, untouched) the rates are over; a line under it
+    states the force thresholds of those classes."""
     ests: list[str] = list(summary["average"].keys())
+    lo, hi = LIGHT_TOUCH_RANGE_N
     cols = [
         ("mIoU", "miou", 3),
         ("force err (N)", "force_err_n", 2),
         ("normal err (N)", "normal_err_n", 2),
         ("shear err (N)", "shear_err_n", 2),
-        ("light-touch det.", "light_touch_rate", 2),
-        ("false contact", "false_contact_rate", 2),
+        (f"light det. ({lo:g}-{hi:g} N)", "light_touch_rate", 2),
+        (f"false contact (< {UNTOUCHED_N:g} N)", "false_contact_rate", 2),
     ]
-    header = ["geometry"] + [f"{e} {c[0]}" for e in ests for c in cols] + ["frames"]
+    header = ["geometry"] + [f"{e} {c[0]}" for e in ests for c in cols]
+    header += ["frames", "light", "untouched"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     rows = list(summary["geometries"].items()) + [("average", summary["average"])]
     for name, per in rows:
         cells = [name]
-        n, x = 0.0, 0.0
+        n, x, n_light, n_untouched = 0.0, 0.0, 0.0, 0.0
         for e in ests:
             st = per.get(e)
             for _, key, d in cols:
@@ -42,8 +46,16 @@ def markdown_table(summary: dict[str, Any]) -> str:
             if st:
                 n = max(n, st["n_frames"])
                 x = max(x, st.get("n_excluded", 0.0))
+                n_light = max(n_light, st.get("n_light", 0.0))
+                n_untouched = max(n_untouched, st.get("n_untouched", 0.0))
         cells.append(str(int(n)) + (f" (+{int(x)} excluded)" if x else ""))
+        cells += [str(int(n_light)), str(int(n_untouched))]
         lines.append("| " + " | ".join(cells) + " |")
+    lines.append(
+        f"\nlight: frames with true |f| in [{lo:g}, {hi:g}] N (the light-touch detection rate is "
+        f"over them); untouched: true |f| < {UNTOUCHED_N:g} N (the false-contact rate is over "
+        "them); average row: rates over those frames of every indenter"
+    )
     return "\n".join(lines)
 
 

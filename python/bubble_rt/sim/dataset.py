@@ -88,6 +88,7 @@ class DatasetSettings:
         "gas_compression",
         "depth_noise",
         "depth_dropouts",
+        "depth_jumps",
         "rgb_noise",
         "pressure_noise",
         "pressure_quantization",

@@ -2,12 +2,14 @@
 
 Every stage draws from its own random stream, seeded by (scene seed, effect name, sample
 index), so naming one effect never changes another's noise and the same scene and seed give
-identical output. The physics effects ("friction", "gas_compression") are settings handed to
+identical output. What stays fixed across frames (where the depth holes sit, the exposure
+drift's phase) comes from a stream of its own. The physics effects ("friction", "gas_compression") are settings handed to
 the physics, not stages here; "oracle" replaces rendering (see simulator.py).
 """
 
 from __future__ import annotations
 
+import functools
 import zlib
 from collections.abc import Callable
 from typing import Any
@@ -18,6 +20,8 @@ from numpy.typing import NDArray
 #: Offset of the sample index used for reference (tare) frames, so they never share a stream
 #: with trajectory frames.
 REFERENCE_STREAM = 1 << 40
+#: Sample index of an effect's per-scene stream (what stays fixed across frames).
+SCENE_STREAM = 1 << 41
 
 
 def effect_rng(seed: int, effect: str, index: int) -> np.random.Generator:
@@ -47,33 +51,94 @@ def fast_normal(rng: np.random.Generator, shape: tuple[int, ...]) -> NDArray[np.
 def depth_noise(
     depth: NDArray[np.float32], p: dict[str, float], rng: np.random.Generator, t: float
 ) -> NDArray[np.float32]:
-    """Gaussian noise with sigma = sigma_per_m2 * z^2 (m), as in stereo and ToF sensors."""
+    """Gaussian noise with sigma = sigma_m + sigma_per_m2 * z^2 (m; the z^2 term is the
+    textbook stereo law, the constant what the D405 shows at 6-10 cm), then the depth rounded
+    to the sensor's depth unit ``step_m`` (the D405 reports 0.1 mm; 0: none)."""
     z = np.asarray(depth, dtype=np.float32)
-    noisy = z + fast_normal(rng, z.shape) * (np.float32(p["sigma_per_m2"]) * z * z)
+    sigma = np.float32(p.get("sigma_m", 0.0)) + np.float32(p["sigma_per_m2"]) * z * z
+    noisy = z + fast_normal(rng, z.shape) * sigma
+    step = np.float32(p.get("step_m", 0.0))
+    if step > 0:
+        noisy = np.round(noisy / step) * step
     return np.where((z > 0) & (noisy > 0), noisy, np.float32(0.0)).astype(np.float32)
 
 
-def depth_dropouts(
-    depth: NDArray[np.float32], p: dict[str, float], rng: np.random.Generator, t: float
-) -> NDArray[np.float32]:
-    """Invalid blobs (depth 0) covering ``fraction`` of the valid pixels, plus a few isolated
-    saturated outliers at ``outlier_depth`` (the real D405 reports 6.5535 m)."""
+def _smooth_field(rng: np.random.Generator, shape: tuple[int, int], cell_px: float) -> NDArray:
+    """A smooth random field (H x W float32, about unit variance) varying over ``cell_px``."""
     import cv2
 
-    h, w = depth.shape
+    h, w = shape
+    cell = max(2.0, cell_px)
+    gh, gw = int(np.ceil(h / cell)) + 2, int(np.ceil(w / cell)) + 2
+    f = cv2.resize(
+        rng.standard_normal((gh, gw)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC
+    )
+    # The spread from a subsample: the field is smooth, and a full-image std costs 1 ms.
+    return np.asarray(f / max(float(f[::4, ::4].std()), 1e-6), dtype=np.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def scene_field(seed: int, effect: str, shape: tuple[int, int], cell_px: float) -> NDArray:
+    """The smooth field of one effect fixed for a whole scene (its stream SCENE_STREAM),
+    computed once per scene and image size (read-only)."""
+    f = _smooth_field(effect_rng(seed, effect, SCENE_STREAM), shape, cell_px)
+    f.flags.writeable = False
+    return f
+
+
+def _normal_cdf(x: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The standard normal CDF to about 3e-4 (a tanh form, several times cheaper than ndtr)."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.float32(0.5) * (
+        np.float32(1.0) + np.tanh(np.float32(0.7978846) * (x + np.float32(0.044715) * x * x * x))
+    )
+
+
+def depth_dropouts(
+    depth: NDArray[np.float32],
+    p: dict[str, float],
+    rng: np.random.Generator,
+    t: float,
+    field: NDArray | None = None,
+) -> NDArray[np.float32]:
+    """Invalid blobs (depth 0) where a stereo camera finds no match, plus a few isolated
+    saturated outliers at ``outlier_depth`` (the real D405 reports 6.5535 m).
+
+    A pixel at range z is invalid with probability ``f + (1 - f) * sigmoid((near_m - z) /
+    near_width_m)``: the near-range limit below which the D405's disparity search finds
+    nothing (``near_m`` 0: none), over a base rate ``f`` that is ``fraction`` everywhere, or,
+    when ``far_m > near_m``, falls linearly from ``fraction`` at ``near_m`` to 0 at ``far_m``
+    (the real frames have no holes past about 90 mm). Which pixels: a smooth field of blob size
+    ``blob_px`` fixed per scene (``field``, see :func:`scene_field`; real holes stay where they
+    are, frame after frame; None: drawn from ``rng``), perturbed each frame by ``flicker`` (in the field's standard deviations), so hole
+    edges flicker as the real ones do.
+    """
     out = depth.copy()
     valid = out > 0
     if not valid.any():
         return out
-    cell = max(2.0, p["blob_px"])
-    gh, gw = int(np.ceil(h / cell)) + 2, int(np.ceil(w / cell)) + 2
-    field = cv2.resize(
-        rng.standard_normal((gh, gw)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC
-    )
-    if p["fraction"] > 0:
-        # The threshold from a fixed subsample of the valid pixels: same statistics, 4x cheaper.
-        thresh = np.quantile(field[valid][::4], 1.0 - min(p["fraction"], 1.0))
-        out[valid & (field >= thresh)] = 0.0
+    shape = (depth.shape[0], depth.shape[1])
+    if field is None:
+        field = _smooth_field(rng, shape, p["blob_px"])
+    if p.get("flicker", 0.0) > 0:
+        jitter = _smooth_field(rng, shape, max(2.0, 0.5 * p["blob_px"]))
+        field = (field + np.float32(p["flicker"]) * jitter) / np.float32(
+            np.sqrt(1.0 + p["flicker"] ** 2)
+        )
+    z = out[valid]
+    near = p.get("near_m", 0.0)
+    w = np.float32(max(p.get("near_width_m", 1e-3), 1e-6))
+    with np.errstate(over="ignore"):
+        ramp = np.float32(1.0) / (np.float32(1.0) + np.exp((z - np.float32(near)) / w))
+    f = min(max(p["fraction"], 0.0), 1.0)
+    far = p.get("far_m", 0.0)
+    if far > near:  # the base rate falls linearly from near_m to nothing at far_m
+        f = f * np.clip((np.float32(far) - z) / np.float32(far - near), 0.0, 1.0)
+    prob = f + (1.0 - f) * (ramp if near > 0 else 0.0)
+    # The field's normal quantile against the pixel's probability: invalid blobs.
+    drop = np.zeros(shape, bool)
+    drop[valid] = _normal_cdf(field[valid]) < prob
+    out[drop] = 0.0
     n_out = int(round(p["outlier_fraction"] * valid.sum()))
     if n_out > 0:
         idx = rng.choice(np.flatnonzero(valid.ravel()), size=n_out, replace=False)
@@ -81,13 +146,94 @@ def depth_dropouts(
     return out
 
 
+def depth_jumps(
+    depth: NDArray[np.float32], p: dict[str, float], rng: np.random.Generator, t: float
+) -> NDArray[np.float32]:
+    """Mixed pixels at depth edges: readings off the surface by millimetres to centimetres.
+
+    At the edge of a hole (the near-range limit, grazing views) a stereo camera mixes the
+    membrane with what lies past it, or aliases the disparity, and reports a depth off the
+    surface, mostly behind it (issue 18's phantom: a 19 mm jump where the real D405 is
+    usually blind). Within ``edge_px`` of a hole edge, small blobs (``blob_px``) covering ``rate`` of
+    the band each frame report the local surface depth (the nearest valid depth, for pixels
+    inside the hole) plus an excess drawn from an exponential of mean ``scale_m``, capped at
+    ``max_m``, behind the surface for a share ``behind_share`` of them and in front for the
+    rest. A share ``hole_share`` of them fall on the hole side (pixels that are otherwise
+    invalid), the rest on valid pixels. Run after "depth_dropouts" (it needs holes).
+    """
+    import cv2
+
+    out = depth.copy()
+    valid = out > 0
+    if p["rate"] <= 0 or valid.all() or not valid.any():
+        return out
+    k = max(1, int(round(p["edge_px"])))
+    # Square (separable, fast) neighbourhoods.
+    kernel = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
+    v8 = valid.astype(np.uint8)
+    hole_side = (cv2.dilate(v8, kernel) > 0) & ~valid
+    valid_side = (cv2.erode(v8, kernel) == 0) & valid
+    shape = (depth.shape[0], depth.shape[1])
+    u = _smooth_field(rng, shape, p["blob_px"])
+    # Choose the band pixels whose field is in the top ``rate`` quantile of each side.
+    hs = min(max(p["hole_share"], 0.0), 1.0)
+    chosen = np.zeros(shape, bool)
+    n_band = int(hole_side.sum() + valid_side.sum())
+    for side, share in ((hole_side, hs), (valid_side, 1.0 - hs)):
+        n = int(round(p["rate"] * n_band * share))
+        if n <= 0 or not side.any():
+            continue
+        vals = u[side]
+        if n >= vals.size:
+            chosen |= side
+            continue
+        thresh = np.partition(vals, vals.size - n)[vals.size - n]
+        chosen |= side & (u >= thresh)
+    if not chosen.any():
+        return out
+    # The local surface under a hole: the nearest valid depths (a dilation of the valid ones).
+    big = np.ones((4 * k + 1, 4 * k + 1), np.uint8)
+    local = np.where(valid, out, cv2.dilate(out, big))  # holes are 0: the max is a valid one
+    excess = rng.exponential(max(p["scale_m"], 0.0), size=int(chosen.sum()))
+    excess = np.minimum(excess, p["max_m"]).astype(np.float32)
+    # Most read behind the surface (an aliased disparity); the rest in front of it.
+    excess[rng.random(excess.size) >= p["behind_share"]] *= -1
+    base = local[chosen]
+    ok = base > 0
+    idx = np.flatnonzero(chosen.ravel())[ok]
+    out.reshape(-1)[idx] = np.maximum(base[ok] + excess[ok], np.float32(1e-4))
+    return out
+
+
 def rgb_noise(
     rgb: NDArray[np.uint8], p: dict[str, float], rng: np.random.Generator, t: float
 ) -> NDArray[np.uint8]:
-    """Additive Gaussian noise (sigma in 8-bit levels), clipped."""
+    """Additive Gaussian noise (sigma in 8-bit levels per channel), clipped.
+
+    ``channel_corr``: correlation of the noise between the three channels (a real sensor's
+    demosaicing and colour processing share one noisy raw value; the D405 shows 0.5), which
+    makes the grey image the optical flow reads noisier than independent channels would.
+    ``h_corr``: correlation of horizontally adjacent pixels' noise (0.24 on the D405).
+    """
     import cv2
 
-    noise = fast_normal(rng, rgb.shape) * np.float32(p["sigma"])
+    rho = min(max(p.get("channel_corr", 0.0), 0.0), 0.99)
+    # Channels correlated by rho: a Cholesky factor of the 3 x 3 correlation mixes three
+    # independent normals (cv2.transform does it in one pass).
+    corr = np.full((3, 3), rho) + (1.0 - rho) * np.eye(3)
+    mix = (np.linalg.cholesky(corr) * p["sigma"]).astype(np.float32)
+    noise = fast_normal(rng, rgb.shape)
+    noise = np.asarray(cv2.transform(noise, mix), dtype=np.float32) if rgb.ndim == 3 else noise
+    c = min(max(p.get("h_corr", 0.0), 0.0), 0.5)
+    if c > 0:
+        # n_i + k n_{i-1}, normalised: neighbour correlation k / (1 + k^2) = c.
+        k = (1.0 - np.sqrt(1.0 - 4.0 * c * c)) / (2.0 * c)
+        kernel = np.array([[k, 1.0, 0.0]], np.float32) / np.float32(np.sqrt(1.0 + k * k))
+        noise = np.asarray(
+            cv2.filter2D(noise, -1, kernel, borderType=cv2.BORDER_REFLECT), dtype=np.float32
+        )
+    if rgb.ndim != 3:
+        noise *= np.float32(p["sigma"])
     return np.asarray(cv2.add(rgb, noise, dtype=cv2.CV_8U))  # rounds and saturates
 
 
@@ -138,6 +284,7 @@ def dropped_frames(n: int, p: dict[str, float], rng: np.random.Generator) -> NDA
 IMAGE_STAGES: dict[str, tuple[str, Callable[..., Any]]] = {
     "depth_noise": ("depth", depth_noise),
     "depth_dropouts": ("depth", depth_dropouts),
+    "depth_jumps": ("depth", depth_jumps),
     "rgb_noise": ("rgb", rgb_noise),
     "exposure_drift": ("rgb", exposure_drift),
 }
@@ -156,17 +303,22 @@ def apply_image_effects(
     rgb: NDArray[np.uint8] | None,
     depth: NDArray[np.float32] | None,
 ) -> tuple[NDArray[np.uint8] | None, NDArray[np.float32] | None]:
-    """Run the named image stages (only those) on one frame's images."""
-    for name, params in effects:
-        stage = IMAGE_STAGES.get(name)
-        if stage is None:
+    """Run the named image stages (only those, in IMAGE_STAGES order) on one frame's images."""
+    named = dict(effects)
+    for name, (target, fn) in IMAGE_STAGES.items():
+        if name not in named:
             continue
-        target, fn = stage
-        p = dict(params)
+        p = dict(named[name])
         # exposure_drift's phase comes from stream 0 so it is the same for every frame.
         rng = effect_rng(seed, name, 0 if name == "exposure_drift" else index)
         if target == "depth" and depth is not None:
-            depth = fn(depth, p, rng, t)
+            if name == "depth_dropouts":
+                # Where the holes sit is the scene's: real holes stay put.
+                shape = (depth.shape[0], depth.shape[1])
+                field = scene_field(int(seed), name, shape, float(p["blob_px"]))
+                depth = fn(depth, p, rng, t, field=field)
+            else:
+                depth = fn(depth, p, rng, t)
         elif target == "rgb" and rgb is not None:
             rgb = fn(rgb, p, rng, t)
     return rgb, depth

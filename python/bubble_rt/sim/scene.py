@@ -26,15 +26,40 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
     # Physics effects (change the simulated state).
     "friction": {"mu": 0.5},
     "gas_compression": {},
-    # Camera effects.
-    "depth_noise": {"sigma_per_m2": 0.02},
+    # Camera effects, matched to the real D405 of the untouched Punyo frames
+    # (docs/sim-noise.md; `python3 -m bubble_rt.sim.sensor_stats` measures both sides).
+    # depth_noise: temporal sigma = sigma_m + sigma_per_m2 z^2 (m), then rounded to the depth
+    # unit step_m; the real sensor is flat over 60-100 mm, not the textbook z^2.
+    "depth_noise": {"sigma_m": 4.5e-5, "sigma_per_m2": 0.0, "step_m": 1.0e-4},
+    # depth_dropouts: holes where the stereo match fails; probability f + (1 - f) *
+    # sigmoid((near_m - z) / near_width_m), f = fraction falling to 0 at far_m (m); blobs of
+    # blob_px fixed per scene, edges perturbed per frame by flicker; outlier_fraction of the
+    # valid pixels saturated at outlier_depth (m; real readers turn those into holes, so 0).
     "depth_dropouts": {
-        "fraction": 0.10,
-        "blob_px": 14.0,
-        "outlier_fraction": 2.0e-4,
+        "fraction": 0.11,
+        "blob_px": 10.0,
+        "near_m": 0.0608,
+        "near_width_m": 0.0013,
+        "far_m": 0.092,
+        "flicker": 0.12,
+        "outlier_fraction": 0.0,
         "outlier_depth": 6.5535,
     },
-    "rgb_noise": {"sigma": 2.0},
+    # depth_jumps: mixed pixels at hole edges; blobs of blob_px covering rate of the band of
+    # edge_px around each hole per frame, hole_share of them inside the hole, reading the
+    # local surface plus an exponential excess of mean scale_m, capped at max_m (m).
+    "depth_jumps": {
+        "rate": 0.025,
+        "edge_px": 3.0,
+        "blob_px": 25.0,
+        "hole_share": 0.95,
+        "behind_share": 0.6,
+        "scale_m": 0.01,
+        "max_m": 0.045,
+    },
+    # rgb_noise: Gaussian, sigma in 8-bit levels per channel, correlated across channels and
+    # between horizontal neighbours as on the D405.
+    "rgb_noise": {"sigma": 2.7, "channel_corr": 0.5, "h_corr": 0.24},
     "exposure_drift": {"amplitude": 0.08, "period_s": 6.0},
     # Pressure sensor effects.
     "pressure_noise": {"sigma_pa": 5.0},
@@ -388,7 +413,8 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     frames = _int(data, "frames", "", int(round(t_end * rate)) + 1, minimum=1)
     effects = _parse_effects(data.get("effects", []))
     if "oracle" in dict(effects) and any(
-        n in dict(effects) for n in ("depth_noise", "depth_dropouts", "rgb_noise", "exposure_drift")
+        n in dict(effects)
+        for n in ("depth_noise", "depth_dropouts", "depth_jumps", "rgb_noise", "exposure_drift")
     ):
         raise SceneError(
             "effects: 'oracle' renders no image, so it cannot be combined with image effects"
