@@ -7,9 +7,9 @@ and approach directions). Each simulated frame carries its true net force as a w
 frame, so the rotation is the identity) and its contact truth, so the project's own recording
 calibration (``bubble_rt.eval.recording_calibration``: the paper's loss, force and contact
 terms, every estimator linearised about its recording's reference pressure) fits the rest
-tension (``ambient_pa``) and the linearised modulus E on them. Calibration scenes use the
-master seed ``CALIB_SEED_BASE``, the held-out check ``EVAL_SEED_BASE``; the real press is not
-read here (check the result with ``../shared/tools/real-press-report --config OUT``).
+tension (``ambient_pa``; ``--fit`` adds E, k_f, k_u) on them. Calibration scenes use the
+master seeds ``CALIB_SEED_BASE`` and the next, the held-out check ``EVAL_SEED_BASE``; the real
+press is not read here (check with ``../shared/tools/real-press-report --config OUT``).
 
     PYTHONPATH=python OPENBLAS_NUM_THREADS=1 python3 bench/punyo_profile_fit.py --out punyo-fit.toml
 
