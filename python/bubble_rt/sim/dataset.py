@@ -6,6 +6,9 @@ sensor orientation roughly facing the indenter, fixed along the trajectory) and 
 it; then move from a free-space waypoint to one near the surface to one in contact. Half the
 trajectories are light touches (a shallow final depth, about 1 N), half heavy (a deep one,
 10 N and more). Everything derives from one seed, so the set is reproducible.
+
+``DatasetSettings.profile`` names the sensor profile whose bubble (physics, camera and pose)
+the scenes simulate; ``PUNYO_DEPTHS`` are final depths for the stiffer simulated Punyo.
 """
 
 from __future__ import annotations
@@ -14,15 +17,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bubble_rt.sensor import PROFILES
 from bubble_rt.sim.scene import (
     EFFECT_DEFAULTS,
     INDENTER_PRESETS,
     IndenterSpec,
     Keyframe,
+    PhysicsSpec,
     RatesSpec,
     Scene,
     SensorSpec,
     TrajectorySpec,
+)
+
+#: Final depths past first touch (m; light, firm) on the simulated Punyo (``profile = "punyo"``),
+#: whose membrane needs about three times the ``sim`` bubble's force for a dent: light touches
+#: of about 0.3-1.5 N and firm presses of about 2-6 N, the real press's range (4.8 N at 5.5 mm).
+PUNYO_DEPTHS: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = (
+    ("round", ((0.0008, 0.002), (0.0035, 0.006))),
+    ("point", ((0.0012, 0.003), (0.005, 0.008))),
+    ("line", ((0.0006, 0.0015), (0.0025, 0.0045))),
+    ("square", ((0.0005, 0.0012), (0.002, 0.0035))),
+    ("split", ((0.0008, 0.0018), (0.003, 0.005))),
 )
 
 
@@ -46,6 +62,8 @@ class DatasetSettings:
         heavy_fraction: share of heavy touches (alternating, so both are always present).
         effects: effects every trajectory scene names.
         sim_nodes: physics mesh resolution.
+        profile: the sensor profile (``bubble_rt.sensor``) whose bubble the scenes simulate
+            (its physics, camera and camera pose); pair ``"punyo"`` with ``PUNYO_DEPTHS``.
     """
 
     per_indenter: int = 34
@@ -77,6 +95,7 @@ class DatasetSettings:
     )
     sim_nodes: int = 2000
     rates: RatesSpec = field(default_factory=RatesSpec)
+    profile: str = "sim"
 
 
 def _tilted(rng: np.random.Generator, max_tilt_deg: float) -> tuple[float, float, float]:
@@ -129,15 +148,20 @@ def trajectory_scene(
         Keyframe(t=duration, at=at, depth=depth, approach=approach, spin_deg=spin),
     )
     effects = tuple((e, tuple(sorted(EFFECT_DEFAULTS[e].items()))) for e in st.effects)
+    bubble = PROFILES[st.profile].bubble
     return Scene(
         name=f"{indenter}-{k}",
         trajectory=TrajectorySpec(keyframes=kf, loop=False),
         frames=st.frames,
         seed=int(rng.integers(0, 2**31 - 1)),
-        sensor=SensorSpec(sim_nodes=st.sim_nodes),
+        sensor=SensorSpec(
+            camera=bubble.camera, camera_pose=bubble.camera_pose, sim_nodes=st.sim_nodes
+        ),
         rates=st.rates,
+        physics=PhysicsSpec.of(bubble),
         indenter=IndenterSpec(preset=indenter),
         effects=effects,
+        profile=st.profile,
     )
 
 
