@@ -35,8 +35,8 @@ def test_default_config():
     c = EstimatorConfig()
     # k_u, k_const, k_linear, nu and thickness are the paper's; E and k_f were chosen for the
     # inflated model + refit on the calibration seeds.
-    assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.1, 537592.0, 2000.0, 2.0, 0.5)
-    assert c.material == Material(0.66e6, 0.5, 0.65e-3)
+    assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.05, 537592.0, 2000.0, 2.0, 0.5)
+    assert c.material == Material(0.55e6, 0.5, 0.65e-3)
     assert (c.inflation_pa, c.ambient_pa) == (5000.0, 101325.0)
     assert c.solver == SolverSettings()
     with pytest.raises(dataclasses.FrozenInstanceError):

@@ -301,7 +301,7 @@ class EstimatorSection:
         "mesh preset (coarse 227, medium 390, fine 749 nodes) or a mesh file, loaded at start",
     )
     fit_mesh: bool = option(True, "fit the mesh onto the membrane seen in the reference frames")
-    k_f: float = option(0.1, "force sparsity weight", lo=1e-4, hi=1e3, unit="1/N")
+    k_f: float = option(0.05, "force sparsity weight", lo=1e-4, hi=1e3, unit="1/N")
     k_u: float = option(537592.0, "displacement fit weight", lo=1e2, hi=1e10, unit="1/m^2")
     youngs_modulus: float = option(
         SIM.youngs_modulus, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa"
