@@ -167,7 +167,11 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
         "I inflated K, E 0.66 MPa, no lasso (raw F = K U - dp a n)",
         {"K": "inflated", "raw": True, "E": 0.66e6},
     ),
-    ("default: F with E 0.66 MPa (ForceEstimator, C++)", {"product": True}),
+    (
+        f"default: F with E {EstimatorConfig().material.E / 1e6:.2f} MPa, k_f "
+        f"{EstimatorConfig().k_f} (ForceEstimator, C++)",
+        {"product": True},
+    ),
 ]
 
 

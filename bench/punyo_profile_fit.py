@@ -88,6 +88,7 @@ def simulated_sets(scenes: Sequence[Any], fan: FanOut, cache: str = "") -> list[
             return list(sets)
     sets = list(fan.map(simulated_set, list(scenes)))
     if cache:
+        Path(cache).parent.mkdir(parents=True, exist_ok=True)
         Path(cache).write_bytes(pickle.dumps((key, sets)))
     return sets
 
