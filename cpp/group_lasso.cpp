@@ -268,9 +268,13 @@ void GroupLassoSolver::warm_start(const Eigen::Ref<const RowMatrixX3d>& V,
   fresh_ = false;
 }
 
+// As the first solve after setup: no previous solution, and the rho rule starts from this
+// frame's data again (the factors already computed stay cached, keyed by rho).
 void GroupLassoSolver::cold_start() {
   have_prev_ = false;
   fresh_ = false;
+  force_scale_ = 0;
+  rho_set_ = false;
 }
 
 namespace {

@@ -99,7 +99,8 @@ class GroupLassoSolver {
   // Start the next solve from corrected displacements V = U + dU (N x 3) and multipliers.
   void warm_start(const Eigen::Ref<const RowMatrixX3d>& V,
                   const Eigen::Ref<const RowMatrixX3d>& dual);
-  // Forget the previous solution: the next solve starts cold (dU = 0, dual = 0).
+  // Forget the previous solution and force scale: the next solve starts as the first one
+  // did (dU = 0, dual = 0, rho from its own data).
   void cold_start();
   SolverResult solve();
 

@@ -147,10 +147,9 @@ class Pipeline:
     # ---------------------------------------------------------------- changes
     def cold_start(self) -> None:
         """The next solve starts as the first one did: no warm start, and the solver's
-        frame-to-frame state (force scale, rho) reset (setting the same weights again)."""
+        frame-to-frame state (force scale, rho) reset."""
         solver = getattr(self.estimator, "solver", None)
         if solver is not None and hasattr(solver, "cold_start"):
-            solver.set_weights(*solver.weights)
             solver.cold_start()
 
     def set_reference(self, reference: Reference) -> None:

@@ -220,7 +220,8 @@ class GroupLassoSolver:
             self._impl.warm_start(V, Y)
 
     def cold_start(self) -> None:
-        """Make the next solve start from dU = 0 and zero multipliers."""
+        """Make the next solve start as the first one did: dU = 0, zero multipliers, and rho
+        chosen from that frame's data (the previous frame's force scale forgotten)."""
         with self._lock:
             self._impl.cold_start()
 

@@ -137,10 +137,14 @@ def worker_estimator(
 ) -> Any:
     """This worker's estimator for ``token`` at ``params``: kept between loss evaluations and
     reconfigured in place; rebuilt (``factory``) when E or the ambient pressure changes, since
-    that refactors K."""
+    that refactors K. A kept one starts cold, so that a loss is a function of the parameters
+    alone (warm-started from another evaluation's last frame it moved by up to 5 %)."""
     key = (params["E"], params.get("ambient_pa"))
     cached = _WORKER_ESTIMATORS.get(token)
     if cached is not None and cached[0] == key and _reconfigure(cached[1], params):
+        solver = getattr(cached[1], "solver", None)
+        if solver is not None and hasattr(solver, "cold_start"):
+            solver.cold_start()
         return cached[1]
     est = factory(mesh, params)
     _WORKER_ESTIMATORS[token] = (key, est)
