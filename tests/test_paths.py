@@ -151,3 +151,21 @@ def test_symlink_to_a_fifo_is_refused(tmp_path, fifo):
     (tmp_path / "link").symlink_to(fifo)
     with pytest.raises(PathError, match="FIFO"):
         regular_file("--config", tmp_path / "link")
+
+
+def test_simulate_scene_fifo_is_refused(capsys, fifo_toml, tmp_path):
+    code, err = _cli(capsys, "simulate", str(fifo_toml), "-o", str(tmp_path / "o.npz"))
+    assert code == 2
+    assert "scene" in err and "FIFO" in err
+
+
+def test_serve_sim_scene_device_is_refused(capsys):
+    code, err = _cli(capsys, "serve", "--camera", "sim:/dev/zero", "--duration", "0.1")
+    assert code == 2
+    assert "--camera sim:" in err and "character device" in err
+
+
+def test_bench_json_output_fifo_is_refused_before_the_run(capsys, fifo_toml):
+    code, err = _cli(capsys, "bench", "--json", str(fifo_toml))
+    assert code == 2
+    assert "--json" in err and "FIFO" in err

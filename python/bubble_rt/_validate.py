@@ -133,14 +133,13 @@ def read_text_capped(name: str, path: str | os.PathLike[str], max_bytes: int) ->
 
 def output_file(name: str, path: str | os.PathLike[str]) -> Path:
     """``path`` as a Path for writing: refused if it exists and is not a regular file (a FIFO
-    would block the writer, a device would swallow the output). A missing path is fine."""
+    would block the writer, a device would swallow the output). A path that does not exist
+    (or cannot be looked at) is left to the writer, which names what is wrong."""
     p = Path(path)
     try:
         st = p.stat()
-    except FileNotFoundError:
+    except OSError:  # missing, or under a file: the writer says what is wrong with the folder
         return p
-    except OSError as exc:
-        raise PathError(f"{name}: {p}: {exc.strerror or exc}") from exc
     if not stat.S_ISREG(st.st_mode):
         raise PathError(f"{name}: {p} exists and is {file_kind(st.st_mode)}, not a regular file")
     return p

@@ -142,15 +142,20 @@ def check_arguments(args: argparse.Namespace) -> None:
 
 def check_replay_path(source: str) -> None:
     """For ``replay:FILE``: a file must be a regular one (a FIFO would block the open, ignoring
-    signals and --duration); a folder (Punyo, PNG, ROS 2 bag) is checked when opened."""
+    signals and --duration); a folder (Punyo, PNG, ROS 2 bag) is checked when opened. For
+    ``sim:SCENE.toml``: a regular file of at most ``CONFIG_MAX_BYTES`` (read whole)."""
     from pathlib import Path
 
-    from bubble_rt._validate import regular_file
+    from bubble_rt._validate import CONFIG_MAX_BYTES, regular_file
     from bubble_rt.config import split_source
 
     kind, arg = split_source(source)
-    if kind == "replay" and arg and Path(arg).exists() and not Path(arg).is_dir():
+    if not arg or not Path(arg).exists():
+        return
+    if kind == "replay" and not Path(arg).is_dir():
         regular_file("--camera replay:", arg)
+    elif kind == "sim":
+        regular_file("--camera sim:", arg, CONFIG_MAX_BYTES)
 
 
 def bag_replay_source(cfg: Any, args: argparse.Namespace) -> Any:
