@@ -2,7 +2,7 @@
 with matplotlib, from the Foxglove channels of an MCAP recording (``serve --foxglove
 --record``), decoding them the way a viewer does (schemas from the file).
 
-    bubble-rt serve --foxglove ws://127.0.0.1:0 --record /tmp/demo.mcap --duration 15
+    bubble-rt serve --foxglove 'ws://127.0.0.1:*' --record /tmp/demo.mcap --duration 15
     python3 bench/render_foxglove_view.py /tmp/demo.mcap --out docs/foxglove_view.png
 
 The 3D panel is the frame with the largest estimated net force unless ``--frame`` names a

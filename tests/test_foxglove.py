@@ -84,7 +84,8 @@ def test_scene_update_builder_arrows_colours_patches():
 def test_parse_address():
     assert fx.parse_address(None) == ("127.0.0.1", 8765)
     assert fx.parse_address("ws://0.0.0.0:9000") == ("0.0.0.0", 9000)
-    assert fx.parse_address(":0") == ("127.0.0.1", 0)
+    assert fx.parse_address(":*") == ("127.0.0.1", 0)  # any free port
+    assert fx.parse_address("ws://[::1]") == ("::1", 8765)
     with pytest.raises(ValueError, match="ws://"):
         fx.parse_address("http://x:1")
 
@@ -163,7 +164,7 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
         pressure=constant_pressure(),
         processor_factory=FakeProcessor,
     )
-    view = FoxgloveView("ws://127.0.0.1:0")
+    view = FoxgloveView("ws://127.0.0.1:*")
     d.viewers.append(view)
     d.start()
     try:

@@ -44,8 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    from bubble_rt._validate import PathError
+
     try:
         return int(args._run(args) or 0)
+    except PathError as exc:  # a path that is not a regular file, named by its option
+        print(f"bubble-rt {args.command}: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
 

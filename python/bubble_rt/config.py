@@ -20,6 +20,13 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from bubble_rt._validate import (
+    CONFIG_MAX_BYTES,
+    PathError,
+    read_text_capped,
+    regular_file,
+    zmq_endpoint_problem,
+)
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
 from bubble_rt.estimation.registry import estimator_kinds
 from bubble_rt.sensor import PROFILES, SIM, SensorProfile, profile_for_layout
@@ -278,7 +285,8 @@ class NetworkConfig:
         check_fields(self)
         for n in ("pub", "control"):
             v = getattr(self, n)
-            _check("://" in v, n, f"not a ZeroMQ address: {v!r} (e.g. tcp://127.0.0.1:5555)")
+            problem = zmq_endpoint_problem(v)
+            _check(problem is None, n, str(problem))
         _check(
             self.pub != self.control or self.pub.endswith(":*"),
             "control",
@@ -337,7 +345,10 @@ class EstimatorSection:
                 "mesh",
                 f"{self.mesh!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file",
             )
-            _check(p.is_file(), "mesh", f"{self.mesh!r} is not a file")
+            try:
+                regular_file("mesh", p)
+            except PathError as exc:
+                raise ConfigError("mesh", str(exc).removeprefix("mesh: ")) from None
 
     def sensor_profile(self, layout: str) -> SensorProfile:
         """The profile in use for data of ``layout`` (``auto`` resolves by layout)."""
@@ -491,13 +502,14 @@ class DaemonConfig:
         return _build(cls, data, "")
 
     @classmethod
-    def load(cls, path: str | Path) -> DaemonConfig:
-        """Read and validate a TOML file."""
+    def load(cls, path: str | Path, option: str = "config file") -> DaemonConfig:
+        """Read and validate a TOML file: a regular file (symlinks followed) of at most
+        ``CONFIG_MAX_BYTES``; ``option`` names where the path came from in errors."""
         p = Path(path)
         try:
-            text = p.read_text()
-        except OSError as exc:
-            raise ConfigError("", f"cannot read config file {p}: {exc}") from exc
+            text = read_text_capped(option, p, CONFIG_MAX_BYTES)
+        except PathError as exc:
+            raise ConfigError("", str(exc)) from exc
         try:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:

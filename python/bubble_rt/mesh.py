@@ -134,9 +134,12 @@ class Mesh:
         """
         import meshio
 
+        from bubble_rt._validate import regular_file
+
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"mesh file not found: {path}")
+        regular_file("mesh", path)  # a FIFO or device would block meshio or never end
         try:
             m = meshio.read(path)
         except Exception as exc:  # meshio raises many types for malformed files

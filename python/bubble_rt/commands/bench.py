@@ -26,6 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bubble_rt._validate import output_file
+
+    if args.json:
+        output_file("--json", args.json)  # refused before the (long) run, not after
     # Single-threaded BLAS: timings must not depend on what else shares the two cores.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -66,6 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bubble_rt._validate import output_file
+
+    output_file("--out", args.out)  # refused before the (long) calibration, not after
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     if args.recording:
         return run_recordings(args)

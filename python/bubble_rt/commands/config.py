@@ -22,7 +22,11 @@ def run(args: argparse.Namespace) -> int:
     from bubble_rt.config import ConfigError, DaemonConfig, dump_toml
 
     try:
-        cfg = DaemonConfig.load(args.file) if args.file else DaemonConfig()
+        cfg = (
+            DaemonConfig.load(args.file, f"config {args.action} FILE")
+            if args.file
+            else DaemonConfig()
+        )
     except ConfigError as exc:
         print(f"bubble-rt config: invalid configuration: {exc}", file=sys.stderr)
         return 2

@@ -104,8 +104,23 @@ def run(args: argparse.Namespace) -> int:
     if not args.json and not args.bag:
         print("bubble-rt estimate: give --json OUT and/or --bag OUT", file=sys.stderr)
         return 2
+    from bubble_rt._validate import PathError, output_file
+
+    try:  # outputs refused before any work (a FIFO would block the final write)
+        for option, out_path in (("--json", args.json), ("--save-mesh", args.save_mesh)):
+            if out_path:
+                output_file(option, out_path)
+    except PathError as exc:
+        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
+        return 2
+    if args.bag and Path(args.bag).exists():
+        print(
+            f"bubble-rt estimate: --bag: {args.bag} exists (a new folder is written)",
+            file=sys.stderr,
+        )
+        return 2
     try:
-        cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()
+        cfg = DaemonConfig.load(args.config, "--config") if args.config else DaemonConfig()
         cfg = cfg.with_overrides(
             **{"estimator.mesh": args.mesh, "flow.method": args.flow, "flow.scale": args.flow_scale}
         )

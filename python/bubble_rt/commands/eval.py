@@ -49,6 +49,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bubble_rt._validate import output_file
+
+    if args.json:
+        output_file("--json", args.json)  # refused before the (long) run, not after
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from bubble_rt import eval as ev
     from bubble_rt.config import ConfigError

@@ -22,6 +22,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bubble_rt._validate import zmq_endpoint
+
+    try:
+        zmq_endpoint("--control", args.control)
+    except ValueError as exc:
+        print(f"bubble-rt record: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     previous = {
         sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)

@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def build_config(args: argparse.Namespace):
     from bubble_rt.config import DaemonConfig
 
-    cfg = DaemonConfig.load(args.config) if args.config else DaemonConfig()
+    cfg = DaemonConfig.load(args.config, "--config") if args.config else DaemonConfig()
     return cfg.with_overrides(
         **{
             "camera.source": args.camera,
@@ -79,9 +79,18 @@ def run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="bubble-rt serve: %(message)s")
     try:
+        check_arguments(args)
+    except ValueError as exc:
+        print(f"bubble-rt serve: {exc}", file=sys.stderr)
+        return 2
+    try:
         cfg = build_config(args)
+        check_replay_path(cfg.camera.source)
     except ConfigError as exc:
         print(f"bubble-rt serve: invalid configuration: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"bubble-rt serve: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
     install_signal_handlers(stop)
@@ -114,6 +123,39 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         os._exit(0)
     return 0
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """Refuse a bad address or output path before anything starts (ValueError naming the
+    option): ZeroMQ endpoints, the Foxglove address, --record."""
+    from bubble_rt._validate import output_file, zmq_endpoint
+    from bubble_rt.io.foxglove import parse_address
+
+    for option in ("pub", "control"):
+        if getattr(args, option, None):
+            zmq_endpoint(f"--{option}", getattr(args, option))
+    if getattr(args, "foxglove", None):
+        parse_address(args.foxglove, "--foxglove")
+    if getattr(args, "record", None):
+        output_file("--record", args.record)
+
+
+def check_replay_path(source: str) -> None:
+    """For ``replay:FILE``: a file must be a regular one (a FIFO would block the open, ignoring
+    signals and --duration); a folder (Punyo, PNG, ROS 2 bag) is checked when opened. For
+    ``sim:SCENE.toml``: a regular file of at most ``CONFIG_MAX_BYTES`` (read whole)."""
+    from pathlib import Path
+
+    from bubble_rt._validate import CONFIG_MAX_BYTES, regular_file
+    from bubble_rt.config import split_source
+
+    kind, arg = split_source(source)
+    if not arg or not Path(arg).exists():
+        return
+    if kind == "replay" and not Path(arg).is_dir():
+        regular_file("--camera replay:", arg)
+    elif kind == "sim":
+        regular_file("--camera sim:", arg, CONFIG_MAX_BYTES)
 
 
 def bag_replay_source(cfg: Any, args: argparse.Namespace) -> Any:

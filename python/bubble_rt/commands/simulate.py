@@ -90,9 +90,13 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
+    from bubble_rt._validate import CONFIG_MAX_BYTES, output_file, regular_file
     from bubble_rt.sim.scene import SceneError, load_scene
     from bubble_rt.sim.simulator import Simulator
 
+    output_file("--output", args.output)
+    if Path(args.scene).exists():  # a scene TOML is read whole: a regular file, capped
+        regular_file("scene", args.scene, CONFIG_MAX_BYTES)
     try:
         scene = load_scene(args.scene)
     except SceneError as exc:

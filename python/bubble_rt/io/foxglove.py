@@ -388,12 +388,28 @@ def channel_specs() -> list[Encoded]:
     return out
 
 
-def parse_address(address: str | None) -> tuple[str, int]:
-    """(host, port) of ``ws://HOST:PORT`` (or ``HOST:PORT``, or ``:PORT``)."""
+def parse_address(address: str | None, name: str = "--foxglove") -> tuple[str, int]:
+    """(host, port) of ``ws://HOST:PORT`` (or ``HOST:PORT``, or ``:PORT``).
+
+    The port is 1-65535, or ``*`` for any free port (returned as 0, as ZeroMQ's ``:*``).
+    Raises ValueError naming ``name`` (the option the address came from).
+    """
+    from bubble_rt._validate import port_problem
+
     a = address or DEFAULT_ADDRESS
     if "//" not in a:
         a = "ws://" + a
-    u = urlparse(a)
+    any_port = a.endswith(":*")
+    u = urlparse(a[:-2] if any_port else a)
     if u.scheme not in ("ws", ""):
-        raise ValueError(f"foxglove address {address!r}: only ws://HOST:PORT is served")
-    return u.hostname or "127.0.0.1", 8765 if u.port is None else int(u.port)
+        raise ValueError(f"{name} {address!r}: only ws://HOST:PORT is served")
+    host = u.hostname or "127.0.0.1"
+    if any_port:
+        return host, 0
+    _, colon, port = u.netloc.rpartition(":")
+    if not colon or "]" in port:  # no port (an IPv6 host's colons end with "]")
+        return host, 8765
+    problem = port_problem(port)
+    if problem is not None:
+        raise ValueError(f"{name} {address!r}: {problem} (use :* for any free port)")
+    return host, int(port)

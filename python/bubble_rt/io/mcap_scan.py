@@ -240,7 +240,13 @@ def _read_summary(mm: Any, size: int, report: ReadReport) -> tuple[list[tuple[in
 
 def check_mcap_file(path: str | Path) -> None:
     """Raise :class:`McapFileError` at once if ``path`` is empty or not an MCAP file."""
+    from bubble_rt._validate import PathError, regular_file
+
     p = Path(path)
+    try:
+        regular_file("recording", p)  # a FIFO would block the open, a device never end
+    except PathError as exc:
+        raise McapFileError(str(exc)) from None
     try:
         with open(p, "rb") as f:
             head = f.read(len(MAGIC))

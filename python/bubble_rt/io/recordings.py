@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt._validate import PathError, regular_file
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame, FrameError, FrameFault
 from bubble_rt.io.punyo import punyo_pose
@@ -73,12 +74,25 @@ def fit_intrinsics(points: NDArray, width: int, height: int) -> tuple[float, flo
     return float(fx), float(fy), float(cx), float(cy)
 
 
+def _regular(path: Path) -> Path:
+    """``path`` if it is a regular file (symlinks followed), so opening it cannot block (FIFO)
+    or never end (a device): FileNotFoundError if missing, FrameError if not regular."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path} missing")
+    try:
+        return regular_file("recording", path)
+    except PathError as exc:
+        raise FrameError(str(exc)) from None
+
+
 def _load_npy(path: Path, mmap_mode: Any = None) -> Any:
     """np.load naming the file when it is missing, truncated or not an .npy file."""
     try:
-        return np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+        return np.load(_regular(path), mmap_mode=mmap_mode, allow_pickle=False)
     except FileNotFoundError:
         raise FrameError(f"{path}: missing") from None
+    except FrameError:
+        raise
     except Exception as exc:
         raise FrameError(
             f"{path}: unreadable, damaged or truncated ({type(exc).__name__}: {exc})"
@@ -178,7 +192,7 @@ class PunyoRecording(Recording):
         wrenches = None
         dj = path / "data.json"
         if dj.exists():
-            rows = json.loads(dj.read_text())
+            rows = json.loads(_regular(dj).read_text())
             if len(rows) < self._n:
                 raise FrameError(f"{dj}: {len(rows)} rows for {self._n} frames")
             self.rows = rows
@@ -250,7 +264,7 @@ class PngRecording(Recording):
         cj = path / "camera.json"
         if not cj.exists():
             raise FileNotFoundError(f"{cj} missing (PNG recordings need camera intrinsics)")
-        c = json.loads(cj.read_text())
+        c = json.loads(_regular(cj).read_text())
         try:
             self.depth_scale = float(c["depth_scale"])
             kwargs: dict[str, Any] = {k: c[k] for k in ("fx", "fy", "cx", "cy")}
@@ -262,7 +276,7 @@ class PngRecording(Recording):
         camera = Camera(**kwargs)
         if "pose" in c:
             camera = camera.with_pose(np.asarray(c["pose"], dtype=np.float64))
-        with open(path / "frames.csv", newline="") as fh:
+        with open(_regular(path / "frames.csv"), newline="") as fh:
             reader = csv.reader(fh)
             header = [h.strip() for h in next(reader)]
             rows = [[float(x) for x in r] for r in reader if r]
@@ -273,8 +287,7 @@ class PngRecording(Recording):
         wrenches = np.array([r[2:8] for r in rows]) if has_wrench else None
         for i in range(len(rows)):
             for kind in ("rgb", "depth"):
-                if not (path / f"{kind}_{i:04d}.png").exists():
-                    raise FileNotFoundError(f"{path / f'{kind}_{i:04d}.png'} missing")
+                _regular(path / f"{kind}_{i:04d}.png")
         super().__init__(path, camera, wrenches)
 
     def __len__(self) -> int:
@@ -327,6 +340,11 @@ def open_recording(
         return BagRecording(p, pose=pose, centre_from_data=centre_from_data, **opts)  # type: ignore[return-value]
     # ---- end ROS 2 bags ----
     # ---- the project's own MCAP recordings (bubble_rt.io.mcap; a bag was caught above) ----
+    if p.exists() and not p.is_dir():  # a file layout: never open a FIFO or a device
+        try:
+            regular_file("recording", p)
+        except PathError as exc:
+            raise FrameError(str(exc)) from None
     if p.suffix == ".mcap" and p.is_file():
         from bubble_rt.io.mcap import McapRecording
 

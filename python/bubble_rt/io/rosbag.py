@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt._validate import PathError, regular_file
 from bubble_rt.camera import Camera
 from bubble_rt.frames import HPA, Frame, FrameError
 
@@ -99,9 +100,10 @@ def is_rosbag(path: str | Path) -> bool:
     p = Path(path)
     if p.is_dir():
         return (p / "metadata.yaml").exists()
+    # is_file (not exists): a FIFO or device is never opened here (it would block).
     if p.suffix == ".db3":
-        return p.exists()
-    if p.suffix == ".mcap" and p.exists():
+        return p.is_file()
+    if p.suffix == ".mcap" and p.is_file():
         try:
             from mcap.reader import make_reader
 
@@ -119,6 +121,15 @@ def _bag_paths(path: Path) -> list[Path]:
     if (path.parent / "metadata.yaml").exists():
         return [path.parent]
     return [path]
+
+
+def _bag_files(path: Path) -> list[Path]:
+    """The files of a bag that exist: metadata.yaml and the storage files (.db3, .mcap)."""
+    if not path.is_dir():
+        return [path]
+    return sorted(
+        f for f in path.iterdir() if f.name == "metadata.yaml" or f.suffix in (".db3", ".mcap")
+    )
 
 
 # ------------------------------------------------------------------------- topic choice
@@ -344,6 +355,11 @@ class BagRecording:
         self.path = Path(path)
         if not self.path.exists():
             raise FileNotFoundError(f"bag not found: {self.path}")
+        for f in _bag_files(self.path):  # what rosbags opens: never a FIFO or a device
+            try:
+                regular_file("recording", f)
+            except PathError as exc:
+                raise FrameError(str(exc)) from None
         if not (np.isfinite(depth_unit) and depth_unit > 0):
             raise FrameError(f"depth unit must be positive metres per count, got {depth_unit}")
         self.depth_unit = float(depth_unit)
