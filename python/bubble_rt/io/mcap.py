@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from bubble_rt._validate import file_kind
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame, FrameError, FrameFault
 from bubble_rt.io import mcap_scan
@@ -122,7 +123,9 @@ def open_new_file(path: str | Path, overwrite: bool = False) -> Any:
         raise RecordingPathError(f"{p}: {exc.strerror or exc}") from exc
     if st is not None:
         if not stat.S_ISREG(st.st_mode):
-            raise RecordingPathError(f"{p}: exists and is not a regular file ({_kind(st.st_mode)})")
+            raise RecordingPathError(
+                f"{p}: exists and is not a regular file ({file_kind(st.st_mode)})"
+            )
         if not overwrite:
             raise RecordingPathError(
                 f"{p}: file exists, not overwritten (replace it with --overwrite, "
@@ -139,7 +142,7 @@ def open_new_file(path: str | Path, overwrite: bool = False) -> Any:
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise RecordingPathError(f"{p}: not a regular file ({_kind(st.st_mode)})")
+            raise RecordingPathError(f"{p}: not a regular file ({file_kind(st.st_mode)})")
         os.set_blocking(fd, True)
         os.ftruncate(fd, 0)
         return os.fdopen(fd, "wb")
@@ -154,19 +157,6 @@ def _under_a_file(folder: Path) -> Path | None:
         if q.exists():
             return None if q.is_dir() else q
     return None
-
-
-def _kind(mode: int) -> str:
-    for test, name in (
-        (stat.S_ISFIFO, "a FIFO"),
-        (stat.S_ISDIR, "a folder"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISSOCK, "a socket"),
-    ):
-        if test(mode):
-            return name
-    return "not a regular file"
 
 
 def camera_info(camera: Camera, t: float = 0.0) -> Any:
