@@ -108,3 +108,19 @@ def test_estimate_refuses_a_bad_config_naming_the_key(tmp_path, capsys):
     args = ["estimate", str(rec), "--config", str(cfg), "--json", str(tmp_path / "o.json")]
     assert main(args) == 2
     assert "invalid configuration: estimator.k_f" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [b"", b"not a mesh\n"], ids=["empty", "garbage"])
+def test_estimate_refuses_an_unreadable_mesh_file_naming_the_option(tmp_path, capsys, content):
+    """An empty mesh file ended the process inside meshio (SystemExit) without the key."""
+    mesh = tmp_path / "m.vtk"
+    mesh.write_bytes(content)
+    out = tmp_path / "o.json"
+    args = ["estimate", str(tmp_path / "none"), "--mesh", str(mesh), "--json", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"--mesh: cannot read mesh {mesh}" in err and not out.exists()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[estimator]\nmesh = "{mesh}"\n')
+    assert main(["estimate", str(tmp_path / "none"), "--config", str(cfg), "--json", str(out)]) == 2
+    assert "estimator.mesh: cannot read mesh" in capsys.readouterr().err

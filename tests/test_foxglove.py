@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import os
 import socket
 import struct
@@ -288,3 +289,20 @@ def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
     with pytest.raises(SourceError, match="color: no sensor_msgs/msg/Image topic under /bubble_9"):
         serve.bag_replay_source(serve.build_config(args), args)
     assert serve.bag_replay_source(serve.build_config(parser.parse_args([])), args) is None
+
+
+def test_one_log_line_per_client_connection(caplog):
+    """foxglove-sdk logged three or four lines for one client connecting and leaving."""
+    # (the level is set before the server starts: foxglove-sdk reads it once)
+    with caplog.at_level(logging.INFO, logger="foxglove"):
+        view = FoxgloveView("ws://127.0.0.1:*")
+        try:
+            ws = WsClient(int(view.address.rsplit(":", 1)[1]))
+            me = ws.sock.getsockname()[1]
+            ws.recv()  # the server's hello: the connection is registered
+            ws.sock.close()  # a reset without closing handshake, as a closed browser tab
+            time.sleep(0.5)  # let the server notice the reset (nothing to wait on)
+        finally:
+            view.close()
+    lines = [r.getMessage() for r in caplog.records if r.name.startswith("foxglove")]
+    assert [m for m in lines if "client" in m.lower()] == [f"Registered client 127.0.0.1:{me}"]

@@ -149,6 +149,15 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"bubble-rt estimate: invalid configuration: {exc}", file=sys.stderr)
         return 2
+    if cfg.estimator.mesh not in PRESET_NODES:  # a mesh file: refused now, with its key
+        from bubble_rt.mesh import Mesh
+
+        try:
+            Mesh.load(cfg.estimator.mesh)
+        except (ValueError, OSError) as exc:  # MeshError, missing file
+            key = "--mesh" if args.mesh else "estimator.mesh"
+            print(f"bubble-rt estimate: {key}: {exc}", file=sys.stderr)
+            return 2
     try:
         rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
     except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
