@@ -79,6 +79,28 @@ def rewrite_bag(src: Path, dst: Path, edit: Edit, topics: dict[str, str] | None 
     return dst
 
 
+def without(root: Path, topic: str, frames: list[Frame], cam: Camera, name: str) -> Path:
+    """A bag of ``frames`` without ``topic``'s messages (no camera_info, no pressure)."""
+    good = write_bag(root / f"{name}-good", frames, cam)
+    return rewrite_bag(good, root / name, lambda t, k, m: None if t == topic else m)
+
+
+def with_depth_size(root: Path, frames: list[Frame], cam: Camera, size: tuple[int, int]) -> Path:
+    """A bag whose depth images are ``size`` (w, h), nearest-neighbour resized (16UC1)."""
+    import cv2
+
+    def resize(t: str, k: int, m: Any) -> Any:
+        if t != DEPTH:
+            return m
+        d = np.frombuffer(m.data.tobytes(), "<u2").reshape(m.height, m.width)
+        r = np.ascontiguousarray(cv2.resize(d, size, interpolation=cv2.INTER_NEAREST))
+        return dataclasses.replace(
+            m, width=size[0], height=size[1], step=2 * size[0], data=r.view(np.uint8).reshape(-1)
+        )
+
+    return rewrite_bag(write_bag(root / "sizes-good", frames, cam), root / "sizes", resize)
+
+
 def _float_image(msg: Any, values: np.ndarray) -> Any:
     """A 32FC1 depth message with ``values`` (H x W) in place of ``msg``'s image."""
     v = np.ascontiguousarray(values, dtype="<f4")

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from broken_bags import INFO, PRESSURE, with_depth_size, without
 from bubble_rt.camera import Camera
 from bubble_rt.cli import main
 from bubble_rt.frames import Frame, FrameError
@@ -118,14 +119,14 @@ def test_depth_unit_setting(tmp_path):
 
 def test_incomplete_bags_name_what_is_missing(tmp_path):
     frames, cam = small_frames(2)
-    p = write_bag(tmp_path / "noinfo", frames, cam, camera_info=False)
+    p = without(tmp_path, INFO, frames, cam, "noinfo")
     with pytest.raises(FrameError, match=r"info: no sensor_msgs/msg/CameraInfo"):
         open_recording(p)
-    p = write_bag(tmp_path / "nopressure", frames, cam, pressure=False)
+    p = without(tmp_path, PRESSURE, frames, cam, "nopressure")
     with pytest.raises(BagTopicError, match=r"pressure: no std_msgs/msg/Float32") as exc:
         open_recording(p)
     assert "/bubble_1/color/image_rect_raw  [sensor_msgs/msg/Image]" in str(exc.value)
-    p = write_bag(tmp_path / "sizes", frames, cam, depth_size=(40, 30))
+    p = with_depth_size(tmp_path, frames, cam, (40, 30))
     with pytest.raises(FrameError, match=r"colour 80 x 60 .* and depth 40 x 30 .* differ"):
         open_recording(p)
     with pytest.raises(FrameError, match="depth unit must be positive"):
@@ -212,6 +213,6 @@ def test_estimate_writes_a_bag_read_back_with_rosbags(tmp_path):
 
 def test_estimate_bag_errors_are_clear(tmp_path, capsys):
     frames, cam = small_frames(2)
-    p = write_bag(tmp_path / "nopressure", frames, cam, pressure=False)
+    p = without(tmp_path, PRESSURE, frames, cam, "nopressure")
     assert main(["estimate", str(p), "--json", str(tmp_path / "o.json")]) == 2
     assert "pressure: no std_msgs/msg/Float32" in capsys.readouterr().err

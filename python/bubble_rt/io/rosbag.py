@@ -916,9 +916,6 @@ def write_bag(
     wrench: bool = True,
     aligned: bool = False,
     tf: bool = False,
-    camera_info: bool = True,
-    pressure: bool = True,
-    depth_size: tuple[int, int] | None = None,
 ) -> Path:
     """Write frames the way punyo-bubble-kit records them (fixtures, conversions).
 
@@ -927,7 +924,6 @@ def write_bag(
     interpolated in time, as float32) received ``pressure_delay_s`` after it was sampled;
     a WrenchStamped per frame when ``wrench`` and the frames carry one. ``tf`` adds a
     ``/tf_static`` with the camera pose; ``aligned`` names depth ``aligned_depth_to_color``.
-    ``camera_info``/``pressure`` False and ``depth_size`` exist to write broken bags in tests.
     A bag's clock cannot go below 0 and the pressure stream starts ``PRESSURE_LEAD_S`` before
     the first frame: earlier frames (the simulator stamps its reference frames before 0) are
     all shifted so that the earliest is at ``PRESSURE_LEAD_S``.
@@ -991,10 +987,6 @@ def write_bag(
                 ns,
             )
             d: Any = np.asarray(f.depth, dtype=np.float32)
-            if depth_size is not None:
-                import cv2
-
-                d = cv2.resize(d, depth_size, interpolation=cv2.INTER_NEAREST)
             dh, dw = d.shape
             if depth_encoding.upper() == "16UC1":
                 raw = np.clip(np.rint(d / depth_unit), 0, 65535).astype("<u2")
@@ -1021,37 +1013,37 @@ def write_bag(
             else:
                 raise ValueError(f"depth encoding {depth_encoding!r}: use 16UC1 or 32FC1")
             bag.write(t_depth, IMAGE, dmsg, ns)
-            if camera_info:
-                k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
-                p = [
-                    camera.fx,
-                    0.0,
-                    camera.cx,
-                    0.0,
-                    0.0,
-                    camera.fy,
-                    camera.cy,
-                    0.0,
-                    0.0,
-                    0.0,
-                    1.0,
-                    0.0,
-                ]
-                RoI = ts.types["sensor_msgs/msg/RegionOfInterest"]
-                info = ts.types[CAMERA_INFO](
-                    header=hdr,
-                    height=camera.height,
-                    width=camera.width,
-                    distortion_model="plumb_bob",
-                    d=np.asarray(camera.distortion, dtype=np.float64),
-                    k=np.asarray(k, dtype=np.float64),
-                    r=np.eye(3).reshape(-1),
-                    p=np.asarray(p, dtype=np.float64),
-                    binning_x=0,
-                    binning_y=0,
-                    roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-                )
-                bag.write(t_info, CAMERA_INFO, info, ns)
+            # camera_info, one per frame as realsense-ros publishes it
+            k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+            p = [
+                camera.fx,
+                0.0,
+                camera.cx,
+                0.0,
+                0.0,
+                camera.fy,
+                camera.cy,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.0,
+            ]
+            RoI = ts.types["sensor_msgs/msg/RegionOfInterest"]
+            info = ts.types[CAMERA_INFO](
+                header=hdr,
+                height=camera.height,
+                width=camera.width,
+                distortion_model="plumb_bob",
+                d=np.asarray(camera.distortion, dtype=np.float64),
+                k=np.asarray(k, dtype=np.float64),
+                r=np.eye(3).reshape(-1),
+                p=np.asarray(p, dtype=np.float64),
+                binning_x=0,
+                binning_y=0,
+                roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+            )
+            bag.write(t_info, CAMERA_INFO, info, ns)
             if wrench and f.wrench is not None:
                 V3 = ts.types["geometry_msgs/msg/Vector3"]
                 wv = [float(x) for x in f.wrench]
@@ -1067,7 +1059,7 @@ def write_bag(
                     ),
                     ns,
                 )
-        if pressure and frames:
+        if frames:
             t_s = np.arange(
                 frames[0].t - PRESSURE_LEAD_S, frames[-1].t + PRESSURE_LEAD_S, 1.0 / pressure_hz
             )
