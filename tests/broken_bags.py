@@ -52,16 +52,23 @@ def bag_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[F
 Edit = Callable[[str, int, Any], Any]
 
 
-def rewrite_bag(src: Path, dst: Path, edit: Edit, topics: dict[str, str] | None = None) -> Path:
-    """Copy the rosbag2 ``src`` to ``dst`` (MCAP storage) through ``edit``; ``topics`` renames
-    topics (old -> new) after the edit."""
+def rewrite_bag(
+    src: Path,
+    dst: Path,
+    edit: Edit,
+    topics: dict[str, str] | None = None,
+    storage: str = "mcap",
+) -> Path:
+    """Copy the rosbag2 ``src`` to ``dst`` (``storage`` "mcap" or "sqlite3") through ``edit``,
+    in time order; ``topics`` renames topics (old -> new) after the edit."""
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     counts: dict[str, int] = {}
     conns: dict[str, Any] = {}
-    writer = Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP)
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
+    writer = Writer(dst, version=9, storage_plugin=plugin)
     writer.open()
     try:
         with Reader(src) as reader:

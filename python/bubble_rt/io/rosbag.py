@@ -33,6 +33,14 @@ and the firmware publishes the previous sample, so a reading received at ``r`` w
 samples at ``t`` (the nearest sample is held outside their span; ``meta["pressure_age_s"]``
 says how far). A wrench is the nearest WrenchStamped by header stamp.
 
+Bad data: a frame whose image cannot be decoded (cut short, a wrong row step, an encoding or
+size that changed mid-bag) or has no valid depth becomes a
+:class:`~bubble_rt.frames.FrameFault` in :meth:`BagRecording.frames` (the same tolerant
+iteration as every layout, :func:`bubble_rt.frames.tolerant`); a non-finite pressure reading
+is dropped at opening and named in ``reading_faults``. A bag cut short is read up to the cut
+(:mod:`bubble_rt.io.bag_recover`; ``lost`` says what was lost). The Punyo kit's pressure
+topic lives in its own namespace: see :func:`choose_topics`.
+
 Pose: without a ``/tf_static`` transform (see above), the Punyo layout's
 :func:`~bubble_rt.io.punyo.punyo_pose`, refined in-plane from frame 0 like the Punyo
 layout (the kit's sensor is the Punyo); ``pose=`` overrides.
@@ -493,36 +501,29 @@ class BagRecording:
                 self.placement += f" (not centred: {exc})"
 
     def _recovered(self, exc: Exception) -> Any:
-        """An open reader of what is readable of a cut or damaged MCAP-storage bag (rebuilt by
-        :func:`bubble_rt.io.mcap.recover` in a temporary folder, removed with this object);
-        ``lost`` says what was lost. rosbags reads neither a cut MCAP file (it needs the
-        summary at the end) nor a cut sqlite3 file ("database disk image is malformed"):
-        the latter is refused with that reason."""
+        """An open reader of what is readable of a cut bag (:mod:`bubble_rt.io.bag_recover`,
+        in a temporary folder removed with this object); ``lost`` says what was lost."""
         import shutil
         import tempfile
         import weakref
 
         from rosbags.highlevel import AnyReader
 
-        from bubble_rt.io.mcap import recover
+        from bubble_rt.io.bag_recover import readable_copy
 
         cannot = f"{self.path}: cannot open as a ROS 2 bag: {exc}"
-        files = [f for f in _bag_files(self.path) if f.suffix == ".mcap"]
-        if not files:
-            raise FrameError(cannot) from exc
         tmp = Path(tempfile.mkdtemp(prefix="bubble_rt_bag_"))
         weakref.finalize(self, shutil.rmtree, tmp, True)
-        lost = []
         try:
-            for f in files:
-                report = recover(f, tmp / f.name)
-                lost.append(report.summary())
-            self._paths = [tmp / f.name for f in files]
+            self._paths, lost = readable_copy(_bag_files(self.path), tmp)
             reader = AnyReader(self._paths, default_typestore=self._ts)
             reader.open()
         except Exception as exc2:
             raise FrameError(f"{cannot} (and no readable part: {exc2})") from exc
-        self.lost = "; ".join(lost).replace(str(tmp), str(self.path))
+        self.lost = lost.replace(str(tmp), str(self.path))
+        if not any(c.msgcount for c in reader.connections):
+            reader.close()
+            raise FrameError(f"{cannot}; nothing before the cut is readable ({self.lost})")
         return reader
 
     # ---------------------------------------------------------------- first pass
