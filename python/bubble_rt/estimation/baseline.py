@@ -36,11 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from bubble_rt.estimation.estimator import ABSOLUTE_PRESSURE_MIN
+from bubble_rt.estimation.estimator import rest_gauge_pa
 from bubble_rt.estimation.solver import SolverInfo
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
-from bubble_rt.sensor import STANDARD_ATMOSPHERE_PA
+from bubble_rt.sensor import SIM, STANDARD_ATMOSPHERE_PA
 
 __all__ = [
     "FrictionlessSettings",
@@ -61,8 +61,9 @@ class FrictionlessSettings:
         T0: membrane tension (N/m); None derives it as p0 R / 2 from the rest gauge pressure
             and the dome fitted to the mesh.
         rest_gauge_pa: rest gauge pressure p0 (Pa); None takes the reference pressure, minus
-            the ambient pressure when it looks absolute (as the FEM estimator does). Falls
-            back to 2600 Pa (Kuppuswamy's value) with a warning when that is not positive.
+            the ambient pressure when it looks absolute (``estimator.rest_gauge_pa``, the
+            FEM estimator's rule). Falls back to the configuration's ``inflation_pa`` (the
+            sensor profile's rest gauge pressure) with a warning when that is not positive.
         atmospheric_pa: ambient pressure (Pa) for gauge <-> absolute; None: the estimator
             configuration's ``ambient_pa`` (the sensor profile's), else the standard one.
         chamber_depth: depth (m) of the air chamber behind the rim plane; the enclosed volume
@@ -221,16 +222,18 @@ class FrictionlessEstimator:
             ambient = float(getattr(config, "ambient_pa", ATMOSPHERIC_PA))
         p0 = s.rest_gauge_pa
         if p0 is None:
-            pr = self.reference_pressure_pa
-            p0 = pr - ambient if pr > ABSOLUTE_PRESSURE_MIN else pr
-        if not p0 > 0 and s.T0 is None:
-            warnings.warn(
-                f"rest gauge pressure {p0} Pa is not positive; using 2600 Pa for T0",
-                stacklevel=3,
-            )
-            p0 = 2600.0
+            p0 = rest_gauge_pa(self.reference_pressure_pa, ambient)
+        if p0 is None or not p0 > 0:
+            fallback = float(getattr(config, "inflation_pa", SIM.bubble.gauge_pressure_pa))
+            if s.T0 is None:
+                warnings.warn(
+                    f"the reference pressure {self.reference_pressure_pa} Pa gives no positive "
+                    f"rest gauge pressure; using {fallback} Pa (the sensor profile's) for T0",
+                    stacklevel=3,
+                )
+            p0 = fallback
         self.rest_gauge_pa = float(p0)
-        self.T0 = float(s.T0) if s.T0 is not None else 0.5 * p0 * dome.radius
+        self.T0 = float(s.T0) if s.T0 is not None else 0.5 * self.rest_gauge_pa * dome.radius
         self.P0 = self.rest_gauge_pa + ambient
         self.V0 = (
             float(s.chamber_volume)

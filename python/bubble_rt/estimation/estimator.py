@@ -102,13 +102,21 @@ class EstimatorConfig:
         _validate.positive("ambient_pa", self.ambient_pa)
 
     def gauge_pressure(self, reference_pressure_pa: float | None) -> float:
-        """Rest gauge pressure (Pa) from a reference pressure reading (absolute above 30 kPa,
-        else gauge); ``inflation_pa`` when there is none or it is not positive."""
-        if reference_pressure_pa is None or not np.isfinite(reference_pressure_pa):
-            return self.inflation_pa
-        p = float(reference_pressure_pa)
-        gauge = p - self.ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
-        return gauge if gauge > 0 else self.inflation_pa
+        """Rest gauge pressure (Pa) from a reference pressure reading (``rest_gauge_pa``);
+        ``inflation_pa`` when there is none or it is not positive."""
+        gauge = rest_gauge_pa(reference_pressure_pa, self.ambient_pa)
+        return gauge if gauge is not None else self.inflation_pa
+
+
+def rest_gauge_pa(reading_pa: float | None, ambient_pa: float) -> float | None:
+    """The rule every estimator uses for the rest gauge pressure (Pa): a reading above
+    ``ABSOLUTE_PRESSURE_MIN`` is absolute (minus ``ambient_pa``), else already gauge; None
+    when there is no finite reading or the gauge pressure is not positive."""
+    if reading_pa is None or not np.isfinite(reading_pa):
+        return None
+    p = float(reading_pa)
+    gauge = p - ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
+    return gauge if gauge > 0 else None
 
 
 #: The TOML ``[estimator]`` keys (daemon config, ``set_params``, ``bubble-rt calibrate``'s output)
