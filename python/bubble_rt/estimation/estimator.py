@@ -24,7 +24,7 @@ import dataclasses
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -102,13 +102,21 @@ class EstimatorConfig:
         _validate.positive("ambient_pa", self.ambient_pa)
 
     def gauge_pressure(self, reference_pressure_pa: float | None) -> float:
-        """Rest gauge pressure (Pa) from a reference pressure reading (absolute above 30 kPa,
-        else gauge); ``inflation_pa`` when there is none or it is not positive."""
-        if reference_pressure_pa is None or not np.isfinite(reference_pressure_pa):
-            return self.inflation_pa
-        p = float(reference_pressure_pa)
-        gauge = p - self.ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
-        return gauge if gauge > 0 else self.inflation_pa
+        """Rest gauge pressure (Pa) from a reference pressure reading (``rest_gauge_pa``);
+        ``inflation_pa`` when there is none or it is not positive."""
+        gauge = rest_gauge_pa(reference_pressure_pa, self.ambient_pa)
+        return gauge if gauge is not None else self.inflation_pa
+
+
+def rest_gauge_pa(reading_pa: float | None, ambient_pa: float) -> float | None:
+    """The rule every estimator uses for the rest gauge pressure (Pa): a reading above
+    ``ABSOLUTE_PRESSURE_MIN`` is absolute (minus ``ambient_pa``), else already gauge; None
+    when there is no finite reading or the gauge pressure is not positive."""
+    if reading_pa is None or not np.isfinite(reading_pa):
+        return None
+    p = float(reading_pa)
+    gauge = p - ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
+    return gauge if gauge > 0 else None
 
 
 #: The TOML ``[estimator]`` keys (daemon config, ``set_params``, ``bubble-rt calibrate``'s output)
@@ -145,10 +153,6 @@ def config_changes(config: EstimatorConfig, values: Mapping[str, float]) -> dict
     return changes
 
 
-class _Tracker(Protocol):
-    def track(self, frame: Any) -> Any: ...
-
-
 class ForceEstimator:
     """FEM estimator: inflated linear membrane, group lasso (ADMM core), refit on its support.
 
@@ -156,7 +160,7 @@ class ForceEstimator:
         mesh: reference Mesh.
         config: EstimatorConfig in use.
         inflation_pa: rest gauge pressure the model is linearised about (Pa): the reference's
-            (given here or by an attached tracker), else ``config.inflation_pa``.
+            (given here), else ``config.inflation_pa``.
         model: MembraneModel (rebuilt when the material or the rest pressure changes).
         solver: GroupLassoSolver (warm-started across calls).
     """
@@ -167,7 +171,6 @@ class ForceEstimator:
         self.mesh = mesh
         self.config = config or EstimatorConfig()
         self._interior = np.ascontiguousarray(mesh.interior, dtype=bool)
-        self._tracker: _Tracker | None = None
         #: the reference's pressure reading (Pa, absolute or gauge; None: no reference)
         self.reference_pressure_pa: float | None = getattr(reference, "pressure_pa", None)
         self._build(self.config.gauge_pressure(self.reference_pressure_pa))
@@ -258,30 +261,3 @@ class ForceEstimator:
             if new.solver != self.config.solver:
                 self.solver.set_settings(new.solver)
         self.config = new
-
-    def attach(self, tracker: _Tracker) -> None:
-        """Use ``tracker.track(frame) -> Deformation`` (U, dp, valid_fraction, timings_ms).
-
-        A tracker with a ``reference`` (pressure_pa) sets the rest gauge pressure the model is
-        linearised about (rebuilt if it moved by more than 1 Pa)."""
-        if not hasattr(tracker, "track"):
-            raise ValueError("tracker must have a track(frame) method")
-        self._tracker = tracker
-        ref = getattr(tracker, "reference", None)
-        if ref is not None:
-            self.reference_pressure_pa = getattr(ref, "pressure_pa", None)
-            gauge = self.config.gauge_pressure(self.reference_pressure_pa)
-            if abs(gauge - self.inflation_pa) > 1.0:
-                self._build(gauge)
-
-    def process(self, frame: Any) -> Estimate:
-        """Track the frame with the attached tracker, then estimate."""
-        if self._tracker is None:
-            raise RuntimeError("no deformation tracker attached: call attach(tracker) first")
-        d = self._tracker.track(frame)
-        est = self.estimate(d.U, d.dp)
-        timings = dict(getattr(d, "timings_ms", {}) or {})
-        timings.update(est.timings_ms)
-        est.timings_ms = timings
-        est.valid_node_fraction = float(getattr(d, "valid_fraction", 1.0))
-        return est
