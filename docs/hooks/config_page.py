@@ -60,7 +60,7 @@ def _accepted(config: Any, f: dataclasses.Field[Any]) -> str:
         return ", ".join(f"`{c}`" for c in choices)
     if isinstance(f.default, bool):
         return "`true`, `false`"
-    return "text (see meaning)"
+    return "text (see meaning)" if isinstance(f.default, str) else "see meaning"
 
 
 def config_tables() -> str:
