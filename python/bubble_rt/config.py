@@ -210,7 +210,7 @@ class PressureConfig:
     """Where air pressure comes from.
 
     source: "camera" (the pressure carried by sim/replay frames), "serial:<port>" (a
-    microcontroller printing the line protocol, see README) or "constant:<pascals>".
+    microcontroller printing the line protocol, see docs/daemon.md) or "constant:<pascals>".
     """
 
     source: str = option(
@@ -296,7 +296,7 @@ class NetworkConfig:
 
 @dataclass(frozen=True)
 class EstimatorSection:
-    """Force estimator (method.md): a registered kind (``bubble_rt.estimation.registry``):
+    """Force estimator (docs/method.md): a registered kind (``bubble_rt.estimation.registry``):
     "fem" (group-lasso FEM) or "frictionless" (baseline). The parameter keys map onto
     EstimatorConfig through ``bubble_rt.estimation.estimator.CONFIG_KEYS``. Their ranges keep
     the solve regular (outside them it is singular or non-finite, e.g. k_u = 5e-324,

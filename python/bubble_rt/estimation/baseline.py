@@ -1,4 +1,5 @@
-"""Frictionless baseline (Kuppuswamy et al., RA-L 2020) as method.md's last section poses it.
+"""Frictionless baseline (Kuppuswamy et al., RA-L 2020) as the paper poses it (docs/method.md,
+"Reference implementation and frictionless baseline").
 
 A pre-tensioned membrane (constant tension T0) that moves only along its reference normals.
 Unknowns: per interior node the normal displacement u_i (m) and the contact pressure pc_i <= 0

@@ -1,4 +1,4 @@
-"""Node displacements from RGBD frames (method.md section 1).
+"""Node displacements from RGBD frames (docs/deformation.md).
 
 For every mesh node: project its reference position into the camera, sample the dense optical
 flow (reference RGB -> current RGB) there, lift the displaced pixel to 3D through the current,

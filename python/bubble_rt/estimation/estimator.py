@@ -1,4 +1,4 @@
-"""Force and contact estimation from nodal displacements (method.md sections 2-3).
+"""Force and contact estimation from nodal displacements (docs/method.md).
 
 ``ForceEstimator.estimate(U, dp)`` runs three steps on the measured displacements:
 

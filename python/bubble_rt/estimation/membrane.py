@@ -1,4 +1,5 @@
-"""Linear plane-stress membrane model (method.md section 2), backed by the C++ core.
+"""Linear plane-stress membrane model, backed by the C++ core (docs/method.md, "Inflated
+membrane model").
 
 Units: metres, pascals, newtons. Sign convention: ``F_ext(U, dp) = K U - dp * a_i * n_i`` is
 the force the object applies on each node; normal pressure ``p_i = -n_i . F_i / a_i`` is

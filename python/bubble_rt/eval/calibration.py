@@ -1,4 +1,4 @@
-"""Calibration of E, k_f and k_u with the paper's loss (method.md section 4).
+"""Calibration of E, k_f and k_u with the paper's loss (docs/evaluation.md, `bubble-rt calibrate`).
 
 Per observation (frame) with ground-truth net force ``f_gt`` (N) and node contact ``c_gt``::
 
@@ -470,7 +470,7 @@ def write_config(
         "initial": result.initial_params,
         **(extra or {}),
     }
-    header = "# written by `bubble-rt calibrate` (paper loss, method.md section 4)\n"
+    header = "# written by `bubble-rt calibrate` (paper loss, docs/evaluation.md)\n"
     header += "".join(f"# {k}: {json.dumps(v)}\n" for k, v in info.items())
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(header + tomli_w.dumps(doc))
