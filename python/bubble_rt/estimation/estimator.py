@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from bubble_rt import _validate
 from bubble_rt.estimation.membrane import Material, MembraneModel
+from bubble_rt.estimation.params import ESTIMATOR_PARAMS
 from bubble_rt.estimation.solver import GroupLassoSolver, SolverInfo, SolverSettings
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.mesh import Mesh
@@ -44,8 +45,10 @@ __all__ = [
     "config_changes",
 ]
 
-#: Membrane material of the default estimator: the simulator's bubble (bubble_rt.sensor.SIM).
-DEFAULT_MATERIAL = Material(E=SIM.youngs_modulus, nu=SIM.poisson, thickness=SIM.thickness)
+#: Membrane material of the default estimator (the declared defaults: the simulator's bubble).
+DEFAULT_MATERIAL = Material(
+    **{p.material: p.default for p in ESTIMATOR_PARAMS.values() if p.material is not None}
+)
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
 #: A node is in the lasso's support when its multiplier is within this of its weight.
@@ -79,13 +82,13 @@ class EstimatorConfig:
     """
 
     material: Material = field(default_factory=lambda: DEFAULT_MATERIAL)
-    k_f: float = 0.05
-    k_u: float = 537592.0
-    k_const: float = 2000.0
-    k_linear: float = 2.0
+    k_f: float = ESTIMATOR_PARAMS["k_f"].default
+    k_u: float = ESTIMATOR_PARAMS["k_u"].default
+    k_const: float = ESTIMATOR_PARAMS["k_const"].default
+    k_linear: float = ESTIMATOR_PARAMS["k_linear"].default
     k_peak: float = 0.5
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
-    ambient_pa: float = SIM.ambient_pa
+    ambient_pa: float = ESTIMATOR_PARAMS["ambient_pa"].default
     solver: SolverSettings = field(default_factory=SolverSettings)
 
     def __post_init__(self) -> None:
@@ -122,14 +125,7 @@ def rest_gauge_pa(reading_pa: float | None, ambient_pa: float) -> float | None:
 #: The TOML ``[estimator]`` keys (daemon config, ``set_params``, ``bubble-rt calibrate``'s output)
 #: and the EstimatorConfig field each one sets: (field, material field or None).
 CONFIG_KEYS: dict[str, tuple[str, str | None]] = {
-    "k_f": ("k_f", None),
-    "k_u": ("k_u", None),
-    "k_const": ("k_const", None),
-    "k_linear": ("k_linear", None),
-    "youngs_modulus": ("material", "E"),
-    "poisson": ("material", "nu"),
-    "thickness": ("material", "thickness"),
-    "ambient_pa": ("ambient_pa", None),
+    k: (p.field, p.material) for k, p in ESTIMATOR_PARAMS.items()
 }
 
 

@@ -46,6 +46,8 @@ class Material:
         _validate.positive("E", self.E)
         _validate.positive("thickness", self.thickness)
         nu = _validate.finite_scalar("nu", self.nu)
+        # What the formulas admit (the C++ core checks the same). The product accepts less from
+        # a user, [0, 0.5] for rubber (estimation.params); tests use other units and values.
         if not -1.0 < nu <= 0.5:
             raise ValueError(f"nu must be in (-1, 0.5], got {nu}")
 
