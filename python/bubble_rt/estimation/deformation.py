@@ -1,4 +1,4 @@
-"""Node displacements from RGBD frames (method.md section 1).
+"""Node displacements from RGBD frames (docs/deformation.md).
 
 For every mesh node: project its reference position into the camera, sample the dense optical
 flow (reference RGB -> current RGB) there, lift the displaced pixel to 3D through the current,
@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS, IMAGE_FLOW_METHODS
+from bubble_rt.estimation.params import FLOW_SCALE
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 
@@ -54,7 +55,7 @@ class FlowSettings:
             "farneback" (the Farneback fields below), "farneback_heavy" (the public
             implementation's set, FARNEBACK_PUBLIC), or "oracle" (simulator ground truth, no
             images; the simulator provides that tracker).
-        scale: images are resized by this factor (0 < scale <= 1) before the flow.
+        scale: images are resized by this factor (``params.FLOW_SCALE``) before the flow.
         margin_px: margin (pixels) around the box the mesh projects into; flow is computed
             only inside that region.
         forward_backward: also compute the backward flow and flag nodes whose round trip
@@ -112,8 +113,9 @@ class FlowSettings:
     def __post_init__(self) -> None:
         if self.method not in FLOW_METHODS:
             raise ValueError(f"flow method {self.method!r} unknown; choose one of {FLOW_METHODS}")
-        if not 0 < self.scale <= 1:
-            raise ValueError(f"flow scale must be in (0, 1], got {self.scale}")
+        problem = FLOW_SCALE.problem(self.scale)
+        if problem is not None:
+            raise ValueError(f"flow scale {problem}")
         if self.margin_px < 0:
             raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
         if self.jump_m is not None and not self.jump_m > 0:

@@ -5,7 +5,7 @@ point cloud and evens it out):
 
 1. The camera pose (``camera.pose``, camera -> mesh frame) places the template's footprint:
    the rim plane is z = 0 of the mesh frame. For the simulator and the default camera this is
-   known; for the public Punyo recording it comes from :func:`punyo_pose` (see recordings.py).
+   known; for the public Punyo recording it comes from :func:`punyo_pose` (``bubble_rt.io.punyo``).
 2. Every interior node keeps its footprint position (x, y) and slides along the mesh z axis
    until it meets the observed surface: the hole-filled reference depth map, bilinear, solved
    per node by a secant iteration on ``z_cam(x, y, h) - depth(project(x, y, h))``.
