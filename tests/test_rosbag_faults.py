@@ -5,6 +5,10 @@ with the Punyo kit (pressure in its own namespace) is read."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -248,3 +252,54 @@ def test_cut_bag_reads_what_is_readable_and_reports_the_loss(
     assert 30 < len(got) < 60  # the first chunk (MCAP) or the pages before the cut (sqlite3)
     assert [f.index for f in got] == list(range(len(got)))
     assert src.stats.errors == {"recording": 1}
+
+
+# ------------------------------------------------------------------- bubble-rt serve
+def serve_replay(tmp_path: Path, bag: Path) -> tuple[list[int], str]:
+    """`bubble-rt serve --camera replay:BAG` (one pass, 2 reference frames, coarse mesh, fast
+    pace) recording its run, in a process of its own (serve may leave with os._exit), stopped
+    by SIGINT once its replay ended: (the frame indices it published forces for, stderr)."""
+    from bubble_rt.io.client import Controller
+    from bubble_rt.io.mcap import McapRecording
+
+    cfg = tmp_path / "serve.toml"
+    cfg.write_text('[camera]\nloop = false\npace = "fast"\n[reference]\nframes = 2\n')
+    rec = tmp_path / "run.mcap"
+    net = ["--pub", "tcp://127.0.0.1:*", "--control", "tcp://127.0.0.1:*"]
+    args = ["serve", "--config", str(cfg), "--camera", f"replay:{bag}", "--mesh", "coarse"]
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+    cmd = [sys.executable, "-m", "bubble_rt", *args, "--record", str(rec), *net]
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    err: list[str] = []
+    try:
+        control = ""
+        while not control:  # the daemon names its control address once it is up
+            line = proc.stderr.readline()
+            assert line, "".join(err)
+            err.append(line)
+            if ", control on " in line:
+                control = line.rsplit(", control on ", 1)[1].strip()
+        with Controller(control) as c:  # wait for the end of the replay, then stop
+            assert wait_for(lambda: "camera source ended" in c.status().reason, 60)
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=30)[1]
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, "".join(err) + rest
+    return sorted(McapRecording(rec, warn=False).published), "".join(err) + rest
+
+
+def test_serve_replay_of_a_damaged_bag_publishes_every_good_frame(tmp_path: Path) -> None:
+    bag, _, _, reason = damaged_bag(tmp_path, "short_colour", 12, 7)
+    published, err = serve_replay(tmp_path, bag)
+    assert published == [2, 3, 4, 5, 6, 8, 9, 10, 11]  # 0-1: the reference
+    assert f"skipped bad frame: {bag.name} frame 7" in err and reason in err
+
+
+def test_serve_replay_of_a_punyo_kit_bag(tmp_path: Path) -> None:
+    bag, frames = kit_bag(tmp_path, n=6)
+    published, err = serve_replay(tmp_path, bag)
+    assert published == [2, 3, 4, 5]
+    assert f"paired with {SERIAL}/pressure" in err
