@@ -142,6 +142,15 @@ def _damage(variant: str, cam: Camera) -> tuple[str, Callable[[Any], Any], str]:
             )
 
         return COLOR, half, "differs from"
+    if variant == "depth_size_change":
+        small_d = np.full((h // 2, w // 2), 80, "<u2")
+
+        def half_depth(m: Any) -> Any:
+            return dataclasses.replace(
+                m, height=h // 2, width=w // 2, step=w, data=small_d.view(np.uint8).reshape(-1)
+            )
+
+        return DEPTH, half_depth, "differs from"
     if variant in ("nan_pressure", "inf_pressure"):
         bad = np.float32("nan" if variant == "nan_pressure" else "inf")
         return PRESSURE, lambda m: dataclasses.replace(m, data=bad), "not finite"
@@ -159,6 +168,7 @@ DAMAGED_VARIANTS = (
     "wrong_row_step",
     "encoding_change",
     "size_change",
+    "depth_size_change",
     "nan_pressure",
     "inf_pressure",
 )

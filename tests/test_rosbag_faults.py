@@ -40,6 +40,7 @@ KINDS = {
     "wrong_row_step": "colour",
     "encoding_change": "colour",
     "size_change": "frame",
+    "depth_size_change": "frame",
     "nan_pressure": "pressure",
     "inf_pressure": "pressure",
 }

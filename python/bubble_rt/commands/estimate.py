@@ -19,7 +19,8 @@ skipped and the run goes on: the JSON lists each under "skipped" ({index, kind, 
 reason}; kind colour | depth | pressure | frame) with counts per kind in "skipped_counts",
 and a line on stderr says how many. Exit status: 0 done (also with skipped frames),
 2 bad arguments or a recording that cannot be opened, 3 (EXIT_NO_FRAME) no usable frame: every
-reference frame or every frame to estimate was skipped (nothing is written).
+reference frame or every frame to estimate was skipped, or the reference frames do not show
+the membrane the mesh is fitted to (nothing is written).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ EPILOG = (
     "Bad frames (and non-finite pressure readings) are skipped and listed under 'skipped' in "
     "the JSON. Exit status: 0 done (also with skipped frames), 2 bad arguments or an "
     f"unreadable recording, {EXIT_NO_FRAME} no usable frame (every reference frame or every "
-    "frame to estimate was skipped)."
+    "frame to estimate was skipped, or the reference frames are not usable)."
 )
 
 
@@ -164,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
     n = len(rec)
+    # (this project's MCAP recordings state no layout: the sensor profile is the default's)
+    layout = getattr(rec, "layout", "mcap")
     if n == 0:  # e.g. an MCAP file cut after its reference frames
         print(f"bubble-rt estimate: {args.recording}: no frame in the recording", file=sys.stderr)
         return EXIT_NO_FRAME
@@ -187,10 +190,14 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_NO_FRAME
-    settings = capture_settings(cfg, realtime=False, layout=rec.layout)
+    settings = capture_settings(cfg, realtime=False, layout=layout)
     preset = cfg.estimator.mesh in PRESET_NODES
     settings["fit"] = settings["fit"] and preset
-    estimator = Pipeline.capture(ref_frames, rec.camera, **settings)
+    try:
+        estimator = Pipeline.capture(ref_frames, rec.camera, **settings)
+    except FrameError as exc:  # e.g. the mesh cannot be fitted: no membrane where expected
+        print(f"bubble-rt estimate: the reference frames are not usable: {exc}", file=sys.stderr)
+        return EXIT_NO_FRAME
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
         {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
@@ -255,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
     cam = rec.camera
     out = {
         "recording": str(Path(args.recording).resolve()),
-        "layout": rec.layout,
+        "layout": layout,
         "camera": {
             "fx": cam.fx,
             "fy": cam.fy,
