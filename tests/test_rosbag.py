@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from broken_bags import INFO, PRESSURE, with_depth_size, without
+from broken_bags import INFO, PRESSURE, RAMP_PA_PER_S, T0, bag_frames, with_depth_size, without
 from bubble_rt.camera import Camera
 from bubble_rt.cli import main
 from bubble_rt.frames import Frame, FrameError
@@ -22,28 +22,8 @@ from bubble_rt.io.rosbag import (
 )
 from synth_rgbd import dome_depth, texture
 
-T0 = 1_700_000_000.0
-RAMP_PA_PER_S = 300.0  # pressure ramp: interpolation between 100 Hz readings is exact
-
-
-def small_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[Frame], Camera]:
-    cam = Camera(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
-    d = dome_depth(cam).astype(np.float32)
-    if mm:  # 16UC1 carries whole millimetres
-        d = (np.round(d * 1000) / 1000).astype(np.float32)
-    rgb = texture(cam.height, cam.width)
-    frames = [
-        Frame(
-            rgb=np.roll(rgb, i, axis=1),
-            depth=d,
-            pressure_pa=101_300.0 + RAMP_PA_PER_S * (i / 30),
-            t=T0 + i / 30,
-            wrench=np.arange(6.0) + i if wrench else None,
-            index=i,
-        )
-        for i in range(n)
-    ]
-    return frames, cam
+# (the bag fixtures live in broken_bags; small_frames keeps its name for other test files)
+small_frames = bag_frames
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
