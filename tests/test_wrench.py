@@ -15,15 +15,16 @@ pytestmark = pytest.mark.timeout(60)
 H = 0.002  # grid spacing of the flat patch, m
 
 
-def flat_grid() -> Mesh:
-    """3 x 3 nodes at x, y in {-H, 0, H}, z = 0; every square split along its (+x, +y)
-    diagonal, counter-clockwise seen from +z (outward normal +z)."""
-    xs = np.array([-H, 0.0, H])
+def flat_grid(n: int = 3) -> Mesh:
+    """n x n nodes spaced H, centred on the origin, z = 0 (node k at column k % n, row
+    k // n); every square split along its (+x, +y) diagonal, counter-clockwise seen from +z
+    (outward normal +z)."""
+    xs = (np.arange(n) - (n - 1) / 2) * H
     v = np.array([[x, y, 0.0] for y in xs for x in xs])
     t = []
-    for j in range(2):
-        for i in range(2):
-            a, b, c, d = 3 * j + i, 3 * j + i + 1, 3 * (j + 1) + i, 3 * (j + 1) + i + 1
+    for j in range(n - 1):
+        for i in range(n - 1):
+            a, b, c, d = n * j + i, n * j + i + 1, n * (j + 1) + i, n * (j + 1) + i + 1
             t += [[a, b, d], [a, d, c]]
     return Mesh(v, np.array(t, np.int32))
 
@@ -67,6 +68,35 @@ def test_given_normal_pressure_sets_the_peak_and_a_tension_does_not_pull_the_loa
     a = pf.areas
     w = np.clip(pressure, 0, None) * a
     np.testing.assert_allclose(p.pressure_centroid, (w / w.sum()) @ mesh.vertices)
+
+
+def test_a_patch_carries_the_force_of_the_support_around_it():
+    # 7 x 7 grid, one row y = 0: contact at columns 1 and 5, force on columns 0-6 of that row
+    # (the estimator's support) plus a loaded node at a far corner, away from any contact.
+    mesh = flat_grid(7)
+    pf = PatchFinder(mesh)
+    row = 3 * 7 + np.arange(7)
+    contact = np.zeros(49, bool)
+    contact[row[[1, 5]]] = True
+    support = np.zeros(49, bool)
+    support[row] = True
+    support[0] = True
+    forces = np.zeros((49, 3))
+    forces[support, 2] = -1.0
+    forces[row, 0] = np.arange(7) * 0.1  # a shear growing along +x
+    left, right = sorted(pf.patches(contact, forces, support=support), key=lambda q: q.centroid[0])
+    # Nearest contact node: columns 0-3 to the left patch (column 3 is a tie, taken by the
+    # first patch), 4-6 to the right one; the far corner belongs to no patch.
+    np.testing.assert_allclose(left.force, [0.0 + 0.1 + 0.2 + 0.3, 0, -4.0])
+    np.testing.assert_allclose(right.force, [0.4 + 0.5 + 0.6, 0, -3.0])
+    # Torque about the (single-node) centroid, over the nodes whose force the patch carries.
+    c = mesh.vertices[row[1]]
+    x = mesh.vertices[row[:4]]
+    np.testing.assert_allclose(left.torque, np.cross(x - c, forces[row[:4]]).sum(axis=0))
+    np.testing.assert_allclose(left.centroid, c)  # centroids stay on the contact nodes
+    # Without a support a patch carries its contact nodes' forces only.
+    q = sorted(pf.patches(contact, forces), key=lambda q: q.centroid[0])
+    np.testing.assert_allclose(q[0].force, forces[row[1]])
 
 
 def test_net_torque_skips_the_rim_and_non_finite_forces():

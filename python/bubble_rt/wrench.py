@@ -5,10 +5,17 @@ ContactPatch normal / peak_pressure / torque / pressure_centroid).
   (the untouched membrane the daemon publishes as its Mesh), about the mesh origin: a
   subscriber recomputes it from a frame's node_forces and the Mesh alone.
 * Patches: connected components of the contact mask over mesh edges. Each carries its
-  area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``) at the
-  nodes' current positions (the mesh's vertices plus the measured displacements, when given),
-  its area, force, the area-weighted mean outward normal of the mesh (unit), the peak normal
-  pressure, and the torque of its forces about ``centroid`` at those same positions.
+  area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``) over
+  its contact nodes at their current positions (the mesh's vertices plus the measured
+  displacements, when given), its area, the area-weighted mean outward normal of the mesh
+  (unit) and the peak normal pressure over its contact nodes; and the force it carries, with
+  that force's torque about ``centroid`` (at the same positions).
+* The force a patch carries: its contact nodes' forces, plus, when the estimator's support
+  (the nodes that carry force) is given, those of the support nodes connected to the patch
+  through the support, each given to the patch with the nearest contact node. The contact
+  rule keeps only a dent's firmest nodes (``k_peak``), so the contact nodes alone carry a
+  share of the load (about 2/3 on simulated split-pin presses), while the support around them
+  carries the rest; a support region with no contact node belongs to no patch.
 
 Shared by the daemon (what it publishes) and the evaluation (what it scores), so both read the
 same numbers.
@@ -69,6 +76,7 @@ class PatchFinder:
         node_forces: ArrayLike,
         displacements: ArrayLike | None = None,
         normal_pressure: ArrayLike | None = None,
+        support: ArrayLike | None = None,
     ) -> list[protocol.Patch]:
         """Patches of one frame, largest force first.
 
@@ -78,6 +86,8 @@ class PatchFinder:
             displacements: N x 3 measured displacements (m); positions are the mesh's
                 vertices plus these (non-finite ones count as zero), else the vertices.
             normal_pressure: (N,) inward normal pressure (Pa); when None, ``-n . f / area``.
+            support: (N,) bool, the nodes that carry force (the estimator's support); None
+                or empty: each patch carries its contact nodes' forces only.
         """
         from scipy.sparse.csgraph import connected_components
 
@@ -96,6 +106,7 @@ class PatchFinder:
             pos = pos + np.nan_to_num(np.asarray(displacements, dtype=np.float64).reshape(-1, 3))
         sub = self.adjacency[idx][:, idx]
         n_comp, labels = connected_components(sub, directed=False)
+        owner = self._load_owner(idx, labels, support)
         out = []
         for c in range(n_comp):
             nodes = idx[labels == c]
@@ -108,7 +119,9 @@ class PatchFinder:
             fn = np.clip(p[nodes], 0.0, None) * a
             total = float(fn.sum())
             pc = (fn / total) @ x if total > 0 else centroid
-            f = F[nodes]
+            load = np.flatnonzero(owner == c)
+            f = F[load]
+            x_load = pos[load]
             out.append(
                 protocol.Patch(
                     centroid=centroid,
@@ -117,9 +130,36 @@ class PatchFinder:
                     nodes=nodes.astype(np.int64),
                     normal=_unit(a @ self.normals[nodes]),
                     peak_pressure=float(p[nodes].max()),
-                    torque=np.cross(x - centroid, f).sum(axis=0),
+                    torque=np.cross(x_load - centroid, f).sum(axis=0),
                     pressure_centroid=pc,
                 )
             )
         out.sort(key=lambda q: -float(np.linalg.norm(q.force)))
         return out
+
+    def _load_owner(
+        self, idx: NDArray[np.int64], labels: NDArray, support: ArrayLike | None
+    ) -> NDArray[np.int64]:
+        """(N,) patch index of each node whose force a patch carries (-1: none)."""
+        n = len(self.vertices)
+        owner = np.full(n, -1, np.int64)
+        owner[idx] = labels
+        sup = None if support is None else np.asarray(support, dtype=bool).reshape(-1)
+        if sup is None or sup.shape != (n,):
+            return owner
+        from scipy.sparse.csgraph import connected_components
+
+        load = np.flatnonzero(sup | (owner >= 0))
+        _, comp = connected_components(self.adjacency[load][:, load], directed=False)
+        for k in np.unique(comp):
+            nodes = load[comp == k]
+            seeds = nodes[owner[nodes] >= 0]
+            if seeds.size == 0:
+                continue  # force-carrying nodes with no contact: no patch's
+            free = nodes[owner[nodes] < 0]
+            if free.size:
+                d = np.linalg.norm(
+                    self.vertices[free, None, :] - self.vertices[None, seeds, :], axis=2
+                )
+                owner[free] = owner[seeds[np.argmin(d, axis=1)]]
+        return owner

@@ -170,7 +170,9 @@ def run(args: argparse.Namespace) -> int:
         e = estimator.process(frame)
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
         tau_mesh = finder.net_torque(e.node_forces)
-        patches = finder.patches(e.contact, e.node_forces, e.displacements, e.normal_pressure)
+        patches = finder.patches(
+            e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
+        )
         if bag is not None:
             bag.write(
                 frame.t,

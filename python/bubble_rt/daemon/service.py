@@ -479,7 +479,11 @@ class Daemon:
             contact = np.asarray(est.contact, dtype=bool)
             forces = np.asarray(est.node_forces, dtype=np.float64)
             patches = self._patches.patches(
-                contact, forces, getattr(est, "displacements", None), est.normal_pressure
+                contact,
+                forces,
+                getattr(est, "displacements", None),
+                est.normal_pressure,
+                getattr(est, "support", None),
             )
             reasons = list(item.reasons)
             vf = float(getattr(est, "valid_node_fraction", 1.0))

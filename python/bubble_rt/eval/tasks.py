@@ -282,7 +282,9 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
             ms = 1e3 * (time.perf_counter() - ts)
             f_gt = np.asarray(frame.truth.net_force, dtype=float)
             forces = np.asarray(e.node_forces, dtype=float)
-            patches = finder.patches(e.contact, forces, e.displacements, e.normal_pressure)
+            patches = finder.patches(
+                e.contact, forces, e.displacements, e.normal_pressure, e.support
+            )
             ps = patch_scores(patches, true_patches[i])
             rec = replace(
                 frame_metrics(
@@ -302,10 +304,12 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
                 ),
                 tau_est=[float(x) for x in finder.net_torque(forces)],
                 tau_gt=[float(x) for x in frame.truth.net_torque()],
+                tau_gt_reference=[float(x) for x in frame.truth.net_torque(at_reference=True)],
                 centroid_err_mm=ps.centroid_err_mm,
                 pressure_centroid_err_mm=ps.pressure_centroid_err_mm,
                 two_contact=ps.two_contact,
                 two_found=ps.two_found,
+                two_found_magnitude=ps.two_found_magnitude,
                 est_patches=len(patches),
             )
             records.append(rec)

@@ -160,11 +160,14 @@ class GroundTruth:
         n = len(self.node_forces)
         return np.ones(n, bool) if self.interior is None else np.asarray(self.interior, bool)
 
-    def net_torque(self) -> NDArray[np.float64]:
+    def net_torque(self, at_reference: bool = False) -> NDArray[np.float64]:
         """(3,) N m: true torque of the contact forces about the mesh origin, ``sum_j x_j x
-        f_j`` over the non-rim simulation nodes at their current positions."""
+        f_j`` over the non-rim simulation nodes at their current positions (the physical
+        torque), or with ``at_reference`` at their untouched positions (the definition the
+        daemon publishes: forces at the untouched mesh's nodes)."""
         keep = self._interior()
-        x = np.asarray(self.sim_vertices, dtype=np.float64)[keep]
+        x = self.sim_reference_vertices if at_reference else self.sim_vertices
+        x = np.asarray(x, dtype=np.float64)[keep]
         f = np.asarray(self.node_forces, dtype=np.float64)[keep]
         return np.asarray(np.cross(x, f).sum(axis=0), dtype=np.float64).reshape(3)
 
