@@ -473,6 +473,7 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
     st = wrench_stats(recs)
     assert st["n_wrench"] == 3 and st["n_torque"] == 3
     assert st["torque_rel_err"] == pytest.approx(0.3)  # median of 0.1, 0.3, 1.0
+    assert st["torque_lever_err_mm"] == pytest.approx(1.5)  # median of 0.5, 1.5, 5 mm (2 N)
     assert st["centroid_err_mm"] == pytest.approx(2.0)  # median of 1, 3 (the miss is counted apart)
     assert st["n_patches_scored"] == 3 and st["n_patches_missed"] == 1
     assert st["centroid_within_tol"] == pytest.approx(1 / 3)

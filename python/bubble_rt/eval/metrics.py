@@ -35,6 +35,9 @@ Wrench and patch geometry (frames whose true net force is at least :data:`WRENCH
   the median over frames is reported (``torque_rel_err``). ``torque_rel_err_reference``
   compares with the truth's forces at their untouched positions instead (the published
   definition), which separates the force field's error from what the dent's motion moves.
+  ``torque_lever_err_mm``: the median of ``|tau - tau_gt| / |f_gt|`` (mm), the torque error as
+  a point-of-action error; it stays meaningful where the true torque is small (a press near
+  the dome's axis), which inflates the relative error.
 - Patch centroid: each true patch carrying at least :data:`PATCH_MIN_N` is matched (largest
   first) to the nearest unmatched estimated patch; the distance from the truth's force-weighted
   centroid to the patch's area-weighted ``centroid`` and to its ``pressure_centroid`` (mm), or
@@ -244,6 +247,11 @@ def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
     tau = [relative_error(r.tau_est, r.tau_gt) for r in recs]
     tau = [x for x in tau if not math.isnan(x)]
     tau_ref = [relative_error(r.tau_est, r.tau_gt_reference) for r in recs]
+    lever = [
+        1e3 * float(np.linalg.norm(np.subtract(r.tau_est, r.tau_gt))) / true_force(r)
+        for r in recs
+        if len(r.tau_est) == 3 and len(r.tau_gt) == 3
+    ]
     ca = [x for r in recs for x in r.centroid_err_mm]
     cp = [x for r in recs for x in r.pressure_centroid_err_mm]
     two = [r for r in recs if r.two_contact]
@@ -259,6 +267,7 @@ def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
     return {
         "torque_rel_err": med(tau),
         "torque_rel_err_reference": med(tau_ref),
+        "torque_lever_err_mm": med(lever),
         "centroid_err_mm": med(ca),
         "pressure_centroid_err_mm": med(cp),
         "centroid_within_tol": within(ca),
@@ -278,6 +287,7 @@ def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
 WRENCH_KEYS = (
     "torque_rel_err",
     "torque_rel_err_reference",
+    "torque_lever_err_mm",
     "centroid_err_mm",
     "pressure_centroid_err_mm",
     "centroid_within_tol",

@@ -75,11 +75,12 @@ def wrench_table(summary: dict[str, Any]) -> str:
     cols = [
         ("torque err (median)", "torque_rel_err", 2),
         ("torque err vs untouched positions", "torque_rel_err_reference", 2),
+        ("torque err / abs(f_gt) (mm)", "torque_lever_err_mm", 2),
         ("centroid err (mm)", "centroid_err_mm", 2),
         ("pressure centroid err (mm)", "pressure_centroid_err_mm", 2),
         (f"pressure centroid <= {tol:g} mm", "pressure_centroid_within_tol", 2),
         ("two contacts found", "two_contact_rate", 2),
-        ("two contacts found (|F|)", "two_contact_magnitude_rate", 2),
+        ("two contacts found (magnitudes)", "two_contact_magnitude_rate", 2),
     ]
     header = ["geometry"] + [f"{e} {c[0]}" for e in ests for c in cols]
     header += ["frames", "patches (missed)", "two-contact frames"]
@@ -106,7 +107,7 @@ def wrench_table(summary: dict[str, Any]) -> str:
         f"of >= {th['patch_min_n']:g} N (force-weighted centroid) to its matched estimated "
         "patch (area-weighted `centroid`, normal-force-weighted `pressure_centroid`); two "
         "contacts found: exactly two estimated patches, each force within "
-        f"{100 * th['patch_force_tol']:g} % (as vectors; (|F|): magnitudes); torque err vs "
+        f"{100 * th['patch_force_tol']:g} % (as vectors, or as magnitudes); torque err vs "
         "untouched positions: against the truth's forces at the nodes' untouched positions, "
         f"the published definition (counts: {ests[0]})"
     )
