@@ -31,6 +31,7 @@ from bubble_rt.estimation.plausibility import (
     PlausibilitySettings,
     PressureGuard,
     ReferenceRefused,
+    capture_time,
     estimate_problems,
     noisy_source,
     reference_force_problem,
@@ -190,7 +191,7 @@ class Pipeline:
         problem = reference_force_problem(s, forces)
         if problem:
             raise ReferenceRefused(problem)
-        self._pressure = PressureGuard(s, self.reference.pressure_pa, self.reference.t)
+        self._pressure = PressureGuard(s, self.reference.pressure_pa, capture_time(frames[-1]))
         self._images = ImageGuard(s, frozen_check=noisy_source(frames))
 
     def _check_frame(self, frame: Frame) -> tuple[Frame, list[str]]:
@@ -199,7 +200,7 @@ class Pipeline:
         if self._pressure is None or self._images is None:
             return frame, []
         reasons = self._images.check(frame)
-        p, why = self._pressure.check(frame.t, frame.pressure_pa)
+        p, why = self._pressure.check(capture_time(frame), frame.pressure_pa)
         if why:
             frame = dataclasses.replace(frame, pressure_pa=p)
         return frame, reasons + why

@@ -99,6 +99,13 @@ def max_pressure_rate(bubble: BubblePhysics, press_speed_m_s: float) -> float:
 
 
 # ------------------------------------------------------------------------------ pressure
+def capture_time(frame: Frame) -> float:
+    """When ``frame`` was captured (s): a replayed or simulated frame is restamped on delivery
+    (two may leave 1 ms apart), its own time kept in ``meta["source_t"]``; its pressure
+    belongs to that time."""
+    return float(frame.meta.get("source_t", frame.t))
+
+
 class PressureGuard:
     """Holds the last good pressure; a reading out of range or jumping faster than
     ``max_pressure_rate_pa_s`` since it is replaced by it (with a reason)."""
@@ -237,6 +244,7 @@ __all__ = [
     "PlausibilitySettings",
     "PressureGuard",
     "ReferenceRefused",
+    "capture_time",
     "dome_volume",
     "estimate_problems",
     "footprint_area",
