@@ -122,8 +122,8 @@ class Daemon:
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
         self._recording_fault_counted = False
-        #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
-        #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
+        #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0

@@ -67,17 +67,13 @@ STATE_NAMES = {
 }
 STATE_VALUES = {v: k for k, v in STATE_NAMES.items()}
 
-#: Request names accepted on the control socket (the ControlRequest oneof fields).
-REQUESTS = (
-    "get_mesh",
-    "get_config",
-    "set_params",
-    "tare",
-    "record_start",
-    "record_stop",
-    "get_status",
+#: Request names accepted on the control socket: the ControlRequest oneof's fields.
+REQUESTS: tuple[str, ...] = tuple(
+    f.name for f in pb.ControlRequest.DESCRIPTOR.oneofs_by_name["request"].fields
 )
-PARAM_NAMES = ("k_f", "k_u", "youngs_modulus", "k_const", "k_linear")
+#: Parameters ``set_params`` carries: the Params message's fields (the estimator's live
+#: parameters, declared in bubble_rt.estimation.params; a test keeps them equal).
+PARAM_NAMES: tuple[str, ...] = tuple(f.name for f in pb.Params.DESCRIPTOR.fields)
 
 
 class ProtocolError(ValueError):
