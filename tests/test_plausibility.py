@@ -227,12 +227,12 @@ def _sim_bag_without_tf(tmp_path: Path) -> Path:
 
 
 def test_wrong_camera_pose_refuses_the_reference_in_estimate(tmp_path, capsys):
-    from bubble_rt.commands.estimate import EXIT_REFERENCE_REFUSED
+    from bubble_rt.commands.estimate import EXIT_NO_FRAME
 
     bag = _sim_bag_without_tf(tmp_path)
     out = tmp_path / "out.json"
     args = [str(bag), "--mesh", "coarse", "--json", str(out), "--no-progress"]
-    assert main(["estimate", *args]) == EXIT_REFERENCE_REFUSED == 3
+    assert main(["estimate", *args]) == EXIT_NO_FRAME == 3
     err = capsys.readouterr().err
     assert "reference refused" in err and "punyo_pose" in err
     for what in ("camera pose", "/tf_static", "intrinsics", "estimator.profile"):

@@ -373,23 +373,6 @@ class FlowSection:
 
 
 @dataclass(frozen=True)
-class ReferenceSection:
-    """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
-
-    frames: int = option(
-        10,
-        "frames averaged into the reference (kept in memory until it is captured: about 2 MB "
-        "each at 640 x 480)",
-        lo=1,
-        hi=300,
-        unit="frames",
-    )
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-
-
-@dataclass(frozen=True)
 class PlausibilitySection:
     """Plausibility checks: a frame the physics cannot support is published degraded with a
     reason (bubble_rt.estimation.plausibility; docs/daemon.md, Degraded frames)."""
@@ -444,6 +427,23 @@ class PlausibilitySection:
         lo=0.0,
         hi=1e4,
         unit="N",
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+@dataclass(frozen=True)
+class ReferenceSection:
+    """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
+
+    frames: int = option(
+        10,
+        "frames averaged into the reference (kept in memory until it is captured: about 2 MB "
+        "each at 640 x 480)",
+        lo=1,
+        hi=300,
+        unit="frames",
     )
 
     def __post_init__(self) -> None:
@@ -516,8 +516,8 @@ class DaemonConfig:
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
     solver: SolverSection = field(default_factory=SolverSection)
     flow: FlowSection = field(default_factory=FlowSection)
-    reference: ReferenceSection = field(default_factory=ReferenceSection)
     plausibility: PlausibilitySection = field(default_factory=PlausibilitySection)
+    reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     shutdown_timeout_s: float = option(

@@ -8,12 +8,7 @@ The reference is captured from the given untouched frames; with a preset name fo
 file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
-timings_ms, wrench (6 or null), solver_status, degraded, degraded_reasons}]}: a degraded frame's
-input or result failed a plausibility check (docs/daemon.md, "Degraded frames").
-
-Exit codes: 0 done, 2 invalid arguments, configuration or recording,
-``EXIT_REFERENCE_REFUSED`` (3) the reference frames were refused (their pressure is out of
-range, or they do not read about zero force: the message says what to check).
+timings_ms, wrench (6 or null), solver_status}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
@@ -27,8 +22,10 @@ from typing import Any
 
 from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
 
-#: Exit code when the plausibility checks refuse the reference frames.
-EXIT_REFERENCE_REFUSED = 3
+#: Exit status when no usable frame is left, e.g. reference frames the plausibility checks
+#: refuse (their pressure out of range, or a force read untouched: the message says what to
+#: check; docs/daemon.md, "Degraded frames"). 0: done; 2: invalid arguments or input.
+EXIT_NO_FRAME = 3
 
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
@@ -106,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
     from bubble_rt.config import ConfigError, DaemonConfig
     from bubble_rt.estimation.pipeline import Pipeline, capture_settings
-    from bubble_rt.estimation.plausibility import ReferenceRefused
+    from bubble_rt.frames import FrameError
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
@@ -153,13 +150,13 @@ def run(args: argparse.Namespace) -> int:
     settings["fit"] = settings["fit"] and preset
     try:
         estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
-    except ReferenceRefused as exc:
+    except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
         print(
-            f"bubble-rt estimate: reference frames {args.reference_frames} of "
-            f"{args.recording} (camera pose from {getattr(rec, 'placement', rec.layout)}): {exc}",
+            f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
+            f"{getattr(rec, 'placement', rec.layout)})",
             file=sys.stderr,
         )
-        return EXIT_REFERENCE_REFUSED
+        return EXIT_NO_FRAME
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
         {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
@@ -198,11 +195,11 @@ def run(args: argparse.Namespace) -> int:
                 "net_force_mesh": f_mesh.tolist(),
                 "contact_nodes": int(np.count_nonzero(e.contact)),
                 "valid_node_fraction": float(e.valid_node_fraction),
+                "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
+                "degraded_reasons": list(e.degraded_reasons),
                 "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
                 "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
                 "solver_status": getattr(e.info, "status", None),
-                "degraded": bool(e.degraded_reasons),
-                "degraded_reasons": list(e.degraded_reasons),
             }
         )
     cam = rec.camera

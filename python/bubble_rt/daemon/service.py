@@ -482,9 +482,10 @@ class Daemon:
             contact = np.asarray(est.contact, dtype=bool)
             forces = np.asarray(est.node_forces, dtype=np.float64)
             patches = self._patches.patches(contact, forces, getattr(est, "displacements", None))
-            # The pipeline's plausibility checks (inputs and result) join the daemon's own.
-            reasons = list(item.reasons) + list(getattr(est, "degraded_reasons", []))
+            reasons = list(item.reasons)
             vf = float(getattr(est, "valid_node_fraction", 1.0))
+            # The pipeline's plausibility checks (inputs and result) join the daemon's own.
+            reasons += list(getattr(est, "degraded_reasons", []))
             for problem in (
                 faults.solver_problem(getattr(est, "info", None)),
                 faults.forces_problem(forces, est.net_force),

@@ -194,6 +194,17 @@ class Pipeline:
         self._pressure = PressureGuard(s, self.reference.pressure_pa, capture_time(frames[-1]))
         self._images = ImageGuard(s, frozen_check=noisy_source(frames))
 
+    def retake_reference(self, frames: Sequence[Frame]) -> None:
+        """Tare on untouched ``frames``: the new reference, checked (``check_reference``);
+        a refused one raises ReferenceRefused and the previous reference stays."""
+        before = (self.reference, self.estimator, self.tracker, self._pressure, self._images)
+        self.set_reference(Reference.capture(frames))
+        try:
+            self.check_reference(frames)
+        except ReferenceRefused:
+            (self.reference, self.estimator, self.tracker, self._pressure, self._images) = before
+            raise
+
     def _check_frame(self, frame: Frame) -> tuple[Frame, list[str]]:
         """The frame with an implausible pressure replaced by the last good one, and the
         degraded reasons of its inputs (none without plausibility settings)."""
@@ -265,17 +276,6 @@ class Pipeline:
         # pressure, the frictionless baseline reads its surface.
         self.estimator = self._build_estimator()
         self._build_tracker()
-
-    def retake_reference(self, frames: Sequence[Frame]) -> None:
-        """Tare on untouched ``frames``: the new reference, checked (``check_reference``);
-        a refused one raises ReferenceRefused and the previous reference stays."""
-        before = (self.reference, self.estimator, self.tracker, self._pressure, self._images)
-        self.set_reference(Reference.capture(frames))
-        try:
-            self.check_reference(frames)
-        except ReferenceRefused:
-            (self.reference, self.estimator, self.tracker, self._pressure, self._images) = before
-            raise
 
     @property
     def params(self) -> tuple[str, ...]:

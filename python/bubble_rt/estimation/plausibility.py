@@ -28,12 +28,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bubble_rt.frames import Frame
+from bubble_rt.frames import Frame, FrameError
 from bubble_rt.sensor import BubblePhysics
 
 
-class ReferenceRefused(ValueError):
-    """The reference frames cannot be the untouched membrane (message: what to check)."""
+class ReferenceRefused(FrameError):
+    """The reference frames cannot be the untouched membrane (message: what to check). A
+    FrameError: callers that refuse unusable reference frames refuse these too."""
 
 
 @dataclass(frozen=True)
