@@ -24,6 +24,11 @@ from typing import Any
 
 from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
 
+#: Exit status when no usable frame is left, e.g. reference frames the plausibility checks
+#: refuse (their pressure out of range, or a force read untouched: the message says what to
+#: check; docs/daemon.md, "Degraded frames"). 0: done; 2: invalid arguments or input.
+EXIT_NO_FRAME = 3
+
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
 
@@ -100,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
 
     from bubble_rt.config import ConfigError, DaemonConfig
     from bubble_rt.estimation.pipeline import Pipeline, capture_settings
+    from bubble_rt.frames import FrameError
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
@@ -144,7 +150,15 @@ def run(args: argparse.Namespace) -> int:
     settings = capture_settings(cfg, realtime=False, layout=rec.layout)
     preset = cfg.estimator.mesh in PRESET_NODES
     settings["fit"] = settings["fit"] and preset
-    estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
+    try:
+        estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
+    except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
+        print(
+            f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
+            f"{getattr(rec, 'placement', rec.layout)})",
+            file=sys.stderr,
+        )
+        return EXIT_NO_FRAME
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
         {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
@@ -191,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
                 "net_force_mesh": f_mesh.tolist(),
                 "contact_nodes": int(np.count_nonzero(e.contact)),
                 "valid_node_fraction": float(e.valid_node_fraction),
+                "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
+                "degraded_reasons": list(e.degraded_reasons),
                 "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
                 "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
                 "solver_status": getattr(e.info, "status", None),
