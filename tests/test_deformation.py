@@ -15,11 +15,9 @@ from bubble_rt.estimation.deformation import (
     DeformationTracker,
     FlowSettings,
     Reference,
-    harmonic_fill,
-    lift_pixels,
-    mesh_laplacian,
 )
 from bubble_rt.estimation.fitting import fit_mesh
+from bubble_rt.estimation.lifting import harmonic_fill, lift_pixels, mesh_laplacian
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 from scipy.ndimage import map_coordinates

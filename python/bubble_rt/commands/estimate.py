@@ -8,7 +8,9 @@ The reference is captured from the given untouched frames; with a preset name fo
 file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
-timings_ms, wrench (6 or null), solver_status}]}.
+timings_ms, wrench (6 or null), solver_status, net_torque_mesh (3, N m, mesh frame, about its
+origin: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
+normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
@@ -19,8 +21,8 @@ skipped and the run goes on: the JSON lists each under "skipped" ({index, kind, 
 reason}; kind colour | depth | pressure | frame) with counts per kind in "skipped_counts",
 and a line on stderr says how many. Exit status: 0 done (also with skipped frames),
 2 bad arguments or a recording that cannot be opened, 3 (EXIT_NO_FRAME) no usable frame: every
-reference frame or every frame to estimate was skipped, or the reference frames do not show
-the membrane the mesh is fitted to (nothing is written).
+reference frame or every frame to estimate was skipped, or the reference frames are refused
+(the plausibility checks, or no membrane where the mesh is fitted; nothing is written).
 """
 
 from __future__ import annotations
@@ -35,15 +37,18 @@ from bubble_rt.frames import FaultTally, FrameFault
 if TYPE_CHECKING:
     from bubble_rt.frames import Frame
 
+#: Exit status when no usable frame is left, e.g. reference frames the plausibility checks
+#: refuse (their pressure out of range, or a force read untouched: the message says what to
+#: check; docs/daemon.md, "Degraded frames"). 0: done; 2: invalid arguments or input.
+EXIT_NO_FRAME = 3
+
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
-#: Exit status when no frame could be used (see the module docstring).
-EXIT_NO_FRAME = 3
 EPILOG = (
     "Bad frames (and non-finite pressure readings) are skipped and listed under 'skipped' in "
     "the JSON. Exit status: 0 done (also with skipped frames), 2 bad arguments or an "
     f"unreadable recording, {EXIT_NO_FRAME} no usable frame (every reference frame or every "
-    "frame to estimate was skipped, or the reference frames are not usable)."
+    "frame to estimate was skipped, or the reference frames are refused: see the message)."
 )
 
 
@@ -195,8 +200,12 @@ def run(args: argparse.Namespace) -> int:
     settings["fit"] = settings["fit"] and preset
     try:
         estimator = Pipeline.capture(ref_frames, rec.camera, **settings)
-    except FrameError as exc:  # e.g. the mesh cannot be fitted: no membrane where expected
-        print(f"bubble-rt estimate: the reference frames are not usable: {exc}", file=sys.stderr)
+    except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
+        print(
+            f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
+            f"{getattr(rec, 'placement', layout)})",
+            file=sys.stderr,
+        )
         return EXIT_NO_FRAME
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
@@ -234,9 +243,16 @@ def run(args: argparse.Namespace) -> int:
         from bubble_rt.io.rosbag import BagWriter
 
         bag = BagWriter(args.bag)
+    from bubble_rt.wrench import PatchFinder
+
+    finder = PatchFinder(mesh)
     frames_out = []
     for frame, e in results:
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        tau_mesh = finder.net_torque(e.node_forces)
+        patches = finder.patches(
+            e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
+        )
         if bag is not None:
             bag.write(
                 frame.t,
@@ -245,6 +261,7 @@ def run(args: argparse.Namespace) -> int:
                 e.node_forces,
                 e.normal_pressure,
                 e.contact,
+                net_torque=tau_mesh,
             )
         frames_out.append(
             {
@@ -254,9 +271,25 @@ def run(args: argparse.Namespace) -> int:
                 "net_force_mesh": f_mesh.tolist(),
                 "contact_nodes": int(np.count_nonzero(e.contact)),
                 "valid_node_fraction": float(e.valid_node_fraction),
+                "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
+                "degraded_reasons": list(e.degraded_reasons),
                 "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
                 "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
                 "solver_status": getattr(e.info, "status", None),
+                "net_torque_mesh": tau_mesh.tolist(),
+                "patches": [
+                    {
+                        "centroid": p.centroid.tolist(),
+                        "pressure_centroid": p.pressure_centroid.tolist(),
+                        "area": p.area,
+                        "force": p.force.tolist(),
+                        "normal": p.normal.tolist(),
+                        "peak_pressure": p.peak_pressure,
+                        "torque": p.torque.tolist(),
+                        "nodes": p.nodes.tolist(),
+                    }
+                    for p in patches
+                ],
             }
         )
     cam = rec.camera

@@ -40,7 +40,8 @@ from numpy.typing import NDArray
 from bubble_rt.estimation.estimator import rest_gauge_pa
 from bubble_rt.estimation.solver import SolverInfo
 from bubble_rt.estimation.types import Estimate
-from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
+from bubble_rt.mesh import lumped_areas, vertex_normals
+from bubble_rt.reference import contact_mask, raycast_mesh
 from bubble_rt.sensor import SIM, STANDARD_ATMOSPHERE_PA
 
 __all__ = [

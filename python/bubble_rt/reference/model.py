@@ -1,16 +1,16 @@
 """Paper-faithful membrane model (the paper's linear model, without inflation) in plain
-NumPy/SciPy: CST stiffness, lumped areas, normals, forces, contact rule."""
+NumPy/SciPy: CST stiffness, lumped areas, normals, forces, contact rule.
+
+Lumped areas and normals are also computed by the product (``bubble_rt.mesh`` and the C++
+membrane model). This copy is kept on purpose: the reference is the yardstick the C++ path is
+tested against, so it shares no code with it (import-linter forbids ``bubble_rt.estimation``
+here)."""
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-
-if TYPE_CHECKING:
-    pass
 
 
 # --------------------------------------------------------------------------- membrane model
