@@ -26,8 +26,10 @@ PRESSURE = "/bubble_1/pressure"
 
 
 def bag_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[Frame], Camera]:
-    """``n`` frames of an 80 x 60 camera looking at a dome, texture sliding 1 px a frame,
-    pressure ramping at RAMP_PA_PER_S, 30 Hz from T0."""
+    """``n`` frames of an 80 x 60 camera looking at a dome: the texture still over frames 0-1
+    (an untouched reference), then sliding 1 px a frame; pressure ramping at RAMP_PA_PER_S;
+    30 Hz from T0. Written with ``tf=True`` the bag carries the camera pose, which the
+    estimator needs (the Punyo pose does not fit this synthetic dome)."""
     cam = Camera(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
     d = dome_depth(cam).astype(np.float32)
     if mm:  # 16UC1 carries whole millimetres
@@ -35,7 +37,7 @@ def bag_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[F
     rgb = texture(cam.height, cam.width)
     frames = [
         Frame(
-            rgb=np.roll(rgb, i, axis=1),
+            rgb=np.roll(rgb, max(i - 1, 0), axis=1),
             depth=d,
             pressure_pa=101_300.0 + RAMP_PA_PER_S * (i / 30),
             t=T0 + i / 30,
@@ -181,7 +183,7 @@ def damaged_bag(
     damage ``variant``: (bag, frames, camera, expected reason text)."""
     frames, cam = bag_frames(n)
     depth_encoding = "32FC1" if variant in ("all_nan_depth_32fc1", "negative_depth") else "16UC1"
-    good = write_bag(root / f"{variant}-good", frames, cam, depth_encoding=depth_encoding)
+    good = write_bag(root / f"{variant}-good", frames, cam, depth_encoding=depth_encoding, tf=True)
     topic, damage, reason = _damage(variant, cam)
 
     def edit(t: str, k: int, msg: Any) -> Any:

@@ -58,7 +58,7 @@ def good_forces(tmp_path_factory: pytest.TempPathFactory) -> dict[int, list[floa
     """Per-frame forces of the undamaged bag (16UC1 and 32FC1 depth read the same mm)."""
     root = tmp_path_factory.mktemp("good")
     frames, cam = bag_frames(N)
-    code, res = estimate(write_bag(root / "bag", frames, cam), root / "out.json")
+    code, res = estimate(write_bag(root / "bag", frames, cam, tf=True), root / "out.json")
     assert code == 0
     return {f["index"]: f["net_force_mesh"] for f in res["frames"]}
 
@@ -81,8 +81,11 @@ def test_estimate_writes_every_good_frame_and_names_the_bad_one(
     assert reason in skip["reason"].lower()
     assert res["skipped_counts"] == {KINDS[variant]: 1}
     assert "1 skipped" in capsys.readouterr().err
-    for f in res["frames"]:  # the good frames read as in the undamaged bag
-        assert np.allclose(f["net_force_mesh"], good_forces[f["index"]], atol=1e-3)
+    for f in res["frames"]:  # the good frames read as in the undamaged bag: the same before
+        # the bad one, within 5 % after it (the flow tracks from the frame before the gap)
+        got, want = np.asarray(f["net_force_mesh"]), np.asarray(good_forces[f["index"]])
+        tol = 1e-6 if f["index"] < BAD or variant in READING else 0.05 * np.linalg.norm(want)
+        assert np.linalg.norm(got - want) <= tol + 1e-6
 
 
 def replay(bag: Path, loop: bool = False) -> Any:
@@ -169,7 +172,7 @@ SERIAL = "/bubble_215387"
 def kit_bag(root: Path, n: int = 4) -> tuple[Path, list[Any]]:
     """Camera under /bubble_1, pressure under /bubble_<usb serial>, as the kit records."""
     frames, cam = bag_frames(n)
-    good = write_bag(root / "good", frames, cam)
+    good = write_bag(root / "good", frames, cam, tf=True)
     rename = {PRESSURE: f"{SERIAL}/pressure"}
     return rewrite_bag(good, root / "kit", lambda t, k, m: m, rename), frames
 
@@ -227,7 +230,7 @@ def cut_bag(root: Path, storage: str, n: int = 60, keep: float = 0.8) -> Path:
     """A time-ordered bag of ``n`` frames (MCAP: two 1 MB chunks) cut to ``keep`` of its
     size, as a recorder killed mid-write leaves it."""
     frames, cam = bag_frames(n)
-    good = write_bag(root / "good", frames, cam)
+    good = write_bag(root / "good", frames, cam, tf=True)
     ordered = rewrite_bag(good, root / "cut", lambda t, k, m: m, storage=storage)
     (f,) = [f for f in ordered.iterdir() if f.suffix in (".mcap", ".db3")]
     data = f.read_bytes()
