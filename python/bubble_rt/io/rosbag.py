@@ -33,6 +33,14 @@ and the firmware publishes the previous sample, so a reading received at ``r`` w
 samples at ``t`` (the nearest sample is held outside their span; ``meta["pressure_age_s"]``
 says how far). A wrench is the nearest WrenchStamped by header stamp.
 
+Bad data: a frame whose image cannot be decoded (cut short, a wrong row step, an encoding or
+size that changed mid-bag) or has no valid depth becomes a
+:class:`~bubble_rt.frames.FrameFault` in :meth:`BagRecording.frames` (the same tolerant
+iteration as every layout, :func:`bubble_rt.frames.tolerant`); a non-finite pressure reading
+is dropped at opening and named in ``reading_faults``. A bag cut short is read up to the cut
+(:mod:`bubble_rt.io.bag_recover`; ``lost`` says what was lost). The Punyo kit's pressure
+topic lives in its own namespace: see :func:`choose_topics`.
+
 Pose: without a ``/tf_static`` transform (see above), the Punyo layout's
 :func:`~bubble_rt.io.punyo.punyo_pose`, refined in-plane from frame 0 like the Punyo
 layout (the kit's sensor is the Punyo); ``pose=`` overrides.
@@ -55,6 +63,7 @@ import dataclasses
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +72,7 @@ from numpy.typing import NDArray
 
 from bubble_rt._validate import PathError, regular_file
 from bubble_rt.camera import Camera
-from bubble_rt.frames import HPA, Frame, FrameError
+from bubble_rt.frames import HPA, Frame, FrameError, FrameFault, tolerant
 
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
@@ -189,14 +198,26 @@ _ROLE_TYPES = {
 
 
 def choose_topics(
-    found: dict[str, str], spec: str | dict[str, str] | None = None, path: str = "bag"
+    found: dict[str, str],
+    spec: str | dict[str, str] | None = None,
+    path: str = "bag",
+    notes: list[str] | None = None,
 ) -> dict[str, str]:
     """Role -> topic from ``found`` (topic -> message type); raises BagTopicError listing
-    what the bag holds when a required role is missing or ambiguous."""
+    what the bag holds when a required role is missing or ambiguous.
+
+    The camera's topics (colour, depth, info) come from one namespace. The pressure comes
+    from the camera's namespace when it has one there; else, as punyo-bubble-kit records it
+    (``/bubble_<usb serial>/pressure`` beside ``/bubble_1/...``), the bag's only pressure
+    topic is paired with the camera and ``notes`` gets a line saying so. Several pressure
+    topics elsewhere are ambiguous: the error lists them."""
     given, ns = parse_topics(spec)
     chosen: dict[str, str] = {}
     problems: list[str] = []
     for role, typ in _ROLE_TYPES.items():
+        if role == "pressure" and role not in given:
+            _choose_pressure(found, ns, chosen, problems, notes)
+            continue
         if role in given:
             t = given[role]
             if t not in found:
@@ -224,13 +245,13 @@ def choose_topics(
             problems.append(f"{role}: ambiguous, candidates {', '.join(tops)}")
             continue
         chosen[role] = tops[0]
-    # One sensor: colour, depth, info and pressure share a namespace unless given explicitly.
+    # One camera: colour and depth share a namespace unless given explicitly.
     if not problems and not ns and not given:
-        spaces = {_namespace(chosen[r]) for r in ("color", "depth", "pressure") if r in chosen}
+        spaces = {_namespace(chosen[r]) for r in ("color", "depth") if r in chosen}
         if len(spaces) > 1:
             problems.append(
-                "the chosen colour/depth/pressure topics are in different namespaces "
-                f"({', '.join(sorted(spaces))}); pick one sensor"
+                "the chosen colour/depth topics are in different namespaces "
+                f"({', '.join(sorted(spaces))}); pick one camera"
             )
     if problems:
         listing = "\n".join(f"  {t}  [{ty}]" for t, ty in sorted(found.items()))
@@ -242,6 +263,42 @@ def choose_topics(
             "or a namespace, e.g. --topics /bubble_1"
         )
     return chosen
+
+
+def _choose_pressure(
+    found: dict[str, str],
+    ns: str,
+    chosen: dict[str, str],
+    problems: list[str],
+    notes: list[str] | None,
+) -> None:
+    """The pressure topic for the camera in ``chosen`` (see :func:`choose_topics`)."""
+    cands = sorted(
+        (r, t)
+        for t, ty in found.items()
+        if ty == FLOAT32 and (r := _rank("pressure", t)) is not None
+    )
+    cam_ns = ns or (_namespace(chosen["color"]) if "color" in chosen else "")
+    local = [(r, t) for r, t in cands if cam_ns and t.startswith(cam_ns + "/")]
+    pool = local or cands
+    if not pool:
+        problems.append(f"pressure: no {FLOAT32} topic")
+        return
+    best = [t for r, t in pool if r == pool[0][0]]
+    if len(best) > 1:
+        where = f" under {cam_ns}" if local else (f" (none under {cam_ns})" if cam_ns else "")
+        problems.append(
+            f"pressure: ambiguous{where}, candidates {', '.join(best)}; choose one with "
+            "--topics pressure=..."
+        )
+        return
+    chosen["pressure"] = best[0]
+    if not local and cam_ns and notes is not None:
+        notes.append(
+            f"camera {cam_ns} ({chosen.get('color')}, {chosen.get('depth')}) paired with "
+            f"{best[0]}, the bag's only pressure topic (another namespace, as the Punyo kit "
+            "records it); choose others with --topics"
+        )
 
 
 def _namespace(topic: str) -> str:
@@ -257,6 +314,20 @@ def image_to_array(msg: Any, depth_unit: float = 0.001) -> NDArray:
     step = int(msg.step)
     big = bool(msg.is_bigendian)
     chans = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8uc3": 3}
+    depth_bytes = {"16uc1": 2, "mono16": 2, "32fc1": 4}
+    if enc not in chans and enc not in depth_bytes:
+        raise FrameError(f"unsupported image encoding {msg.encoding!r}")
+    kind = "colour" if enc in chans else "depth"
+    row = w * (chans[enc] if enc in chans else depth_bytes[enc])
+    if h <= 0 or w <= 0:
+        raise FrameError(f"{enc} image is {w} x {h}", kind)
+    if step < row:
+        raise FrameError(f"{enc} row step {step} bytes is less than {w} pixels need ({row})", kind)
+    if data.size < h * step:
+        raise FrameError(
+            f"{enc} data is {data.size} bytes, {h} rows of {step} need {h * step} (cut short)",
+            kind,
+        )
     if enc in chans:
         c = chans[enc]
         a = data[: h * step].reshape(h, step)[:, : w * c].reshape(h, w, c)
@@ -275,8 +346,9 @@ def image_to_array(msg: Any, depth_unit: float = 0.001) -> NDArray:
         dtf = np.dtype(">f4" if big else "<f4")
         d = data[: h * step].reshape(h, step)[:, : w * 4].copy().view(dtf).reshape(h, w)
         d = d.astype(np.float32)
-        return np.where(np.isfinite(d) & (d > 0), d, np.float32(0))
-    raise FrameError(f"unsupported image encoding {msg.encoding!r}")
+        with np.errstate(invalid="ignore"):
+            return np.where(np.isfinite(d) & (d > 0), d, np.float32(0))
+    raise AssertionError(enc)  # every encoding in chans / depth_bytes is decoded above
 
 
 def camera_from_info(msg: Any) -> Camera:
@@ -318,6 +390,21 @@ def _matrix_quat(R: NDArray) -> tuple[float, float, float, float]:
 
     x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     return float(x), float(y), float(z), float(w)
+
+
+def _decode(reader: Any, raw: bytes, msgtype: str, depth_unit: float | None) -> Any:
+    """The image of a raw message (colour when ``depth_unit`` is None), or the exception
+    decoding it raised, kept for the frame that needs it (which becomes a FrameFault)."""
+    kind = "colour" if depth_unit is None else "depth"
+    try:
+        msg = reader.deserialize(raw, msgtype)
+        if depth_unit is None:
+            return image_to_array(msg)
+        return image_to_array(msg, depth_unit)
+    except FrameError as exc:
+        return FrameError(f"{kind} image: {exc}", kind)
+    except Exception as exc:
+        return FrameError(f"{kind} image: {type(exc).__name__}: {exc}", kind)
 
 
 # ------------------------------------------------------------------------- reading
@@ -363,18 +450,25 @@ class BagRecording:
                 raise FrameError(str(exc)) from None
         if not (np.isfinite(depth_unit) and depth_unit > 0):
             raise FrameError(f"depth unit must be positive metres per count, got {depth_unit}")
+        #: Pressure readings skipped (not finite), named: frames use the other readings.
+        self.reading_faults: list[FrameFault] = []
         self.depth_unit = float(depth_unit)
         self.pressure_delay_s = float(pressure_delay_s)
         self._paths = _bag_paths(self.path)
         self._ts = _typestore()
+        #: What a cut or damaged bag lost ("" when it was read whole).
+        self.lost = ""
         try:
             reader = AnyReader(self._paths, default_typestore=self._ts)
             reader.open()
         except Exception as exc:
-            raise FrameError(f"{self.path}: cannot open as a ROS 2 bag: {exc}") from exc
+            reader = self._recovered(exc)
         try:
             found = {c.topic: c.msgtype for c in reader.connections}
-            self.topics = choose_topics(found, topics, str(self.path))
+            notes: list[str] = []
+            self.topics = choose_topics(found, topics, str(self.path), notes)
+            #: How the topics were paired when that is worth saying ("" otherwise).
+            self.topics_note = "; ".join(notes)
             self._scan(reader, sync_tol_s)
         finally:
             reader.close()
@@ -397,7 +491,7 @@ class BagRecording:
             camera = camera.with_pose(punyo_pose())
             self.placement = "punyo_pose"
         self.camera = camera
-        self._cursor: tuple[Iterator[Frame], int] | None = None
+        self._cursor: tuple[Iterator[Frame | FrameFault], int] | None = None
         if pose is None and tf_pose is None and centre_from_data:
             from bubble_rt.estimation.fitting import centre_pose
 
@@ -406,6 +500,32 @@ class BagRecording:
                 self.placement = "centred"
             except FrameError as exc:
                 self.placement += f" (not centred: {exc})"
+
+    def _recovered(self, exc: Exception) -> Any:
+        """An open reader of what is readable of a cut bag (:mod:`bubble_rt.io.bag_recover`,
+        in a temporary folder removed with this object); ``lost`` says what was lost."""
+        import shutil
+        import tempfile
+        import weakref
+
+        from rosbags.highlevel import AnyReader
+
+        from bubble_rt.io.bag_recover import readable_copy
+
+        cannot = f"{self.path}: cannot open as a ROS 2 bag: {exc}"
+        tmp = Path(tempfile.mkdtemp(prefix="bubble_rt_bag_"))
+        weakref.finalize(self, shutil.rmtree, tmp, True)
+        try:
+            self._paths, lost = readable_copy(_bag_files(self.path), tmp)
+            reader = AnyReader(self._paths, default_typestore=self._ts)
+            reader.open()
+        except Exception as exc2:
+            raise FrameError(f"{cannot} (and no readable part: {exc2})") from exc
+        self.lost = lost.replace(str(tmp), str(self.path))
+        if not any(c.msgcount for c in reader.connections):
+            reader.close()
+            raise FrameError(f"{cannot}; nothing before the cut is readable ({self.lost})")
+        return reader
 
     # ---------------------------------------------------------------- first pass
     def _scan(self, reader: Any, sync_tol_s: float) -> None:
@@ -423,22 +543,35 @@ class BagRecording:
         w_t: list[float] = []
         w_v: list[list[float]] = []
         tf_msgs: list[Any] = []
+        n_p = 0
+        name = self.path.name
         for conn, recv_ns, raw in reader.messages(connections=conns):
             topic = conn.topic
             if topic == tp["pressure"]:
                 msg = reader.deserialize(raw, conn.msgtype)
+                k, n_p = n_p, n_p + 1
+                hpa = float(msg.data)
+                if not np.isfinite(hpa):  # a bad reading is skipped: frames use the others
+                    where = f"{name} {topic} reading {k}"
+                    reason = f"pressure reading is not finite: {hpa}"
+                    self.reading_faults.append(
+                        FrameFault(k, where, reason, "pressure", reading=True)
+                    )
+                    continue
                 p_t.append(recv_ns * 1e-9 - self.pressure_delay_s)
-                p_v.append(float(msg.data) * HPA)
+                p_v.append(hpa * HPA)
                 continue
             msg = reader.deserialize(raw, conn.msgtype)
+            # Sizes and encodings are the first image's: a later change makes those frames
+            # bad ones (skipped and named), not the whole bag.
             if topic == tp["color"]:
                 color_t.append(_stamp_s(msg.header))
                 color_size = color_size or (int(msg.width), int(msg.height))
-                encodings["color"] = str(msg.encoding)
+                encodings.setdefault("color", str(msg.encoding))
             elif topic == tp["depth"]:
                 depth_t.append(_stamp_s(msg.header))
                 depth_size = depth_size or (int(msg.width), int(msg.height))
-                encodings["depth"] = str(msg.encoding)
+                encodings.setdefault("depth", str(msg.encoding))
             elif topic == tp["info"]:
                 info = info or msg
             elif topic == tp.get("wrench"):
@@ -460,7 +593,8 @@ class BagRecording:
         if info is None:
             missing.append(f"camera_info on {tp['info']}")
         if missing:
-            raise FrameError(f"{where}: no " + ", no ".join(missing))
+            bad = f" ({len(self.reading_faults)} not finite)" if self.reading_faults else ""
+            raise FrameError(f"{where}: no " + ", no ".join(missing) + (bad if not p_t else ""))
         if color_size != depth_size:
             raise FrameError(
                 f"{where}: colour {color_size[0]} x {color_size[1]} ({tp['color']}) and depth "  # type: ignore[index]
@@ -552,12 +686,19 @@ class BagRecording:
             pos += 1
             self._cursor = (it, pos)
             if f.index == i:
+                if isinstance(f, FrameFault):
+                    raise FrameError(str(f), f.kind)
                 return f
 
     def __iter__(self) -> Iterator[Frame]:
-        return self._frames()
+        return (f for f in self._frames() if isinstance(f, Frame))
 
-    def _frames(self) -> Iterator[Frame]:
+    def frames(self, faults: bool = True) -> Iterator[Frame | FrameFault]:
+        """Frames in order; with ``faults`` a FrameFault stands in for each bad one (image
+        cut short, wrong row step or encoding, no valid depth, size change, ...)."""
+        return (f for f in self._frames() if faults or isinstance(f, Frame))
+
+    def _frames(self) -> Iterator[Frame | FrameFault]:
         from rosbags.highlevel import AnyReader
 
         tp = self.topics
@@ -569,25 +710,29 @@ class BagRecording:
             need_d: dict[int, list[int]] = {}
             for k, ix in enumerate(self._index):
                 need_d.setdefault(ix.depth, []).append(k)
-            rgb: dict[int, NDArray] = {}
-            depth: dict[int, NDArray] = {}
+            # Decoded images, or the exception decoding raised (the frame becomes a fault).
+            rgb: dict[int, Any] = {}
+            depth: dict[int, Any] = {}
             nc = nd = 0
             nxt = 0
             for conn, _, raw in reader.messages(connections=conns):
                 if conn.topic == tp["color"]:
                     if nc in need_c:
-                        msg = reader.deserialize(raw, conn.msgtype)
-                        rgb[need_c[nc]] = image_to_array(msg)
+                        rgb[need_c[nc]] = _decode(reader, raw, conn.msgtype, None)
                     nc += 1
                 else:
                     if nd in need_d:
-                        msg = reader.deserialize(raw, conn.msgtype)
-                        d = image_to_array(msg, self.depth_unit)
+                        d = _decode(reader, raw, conn.msgtype, self.depth_unit)
                         for k in need_d[nd]:
                             depth[k] = d
                     nd += 1
                 while nxt in rgb and nxt in depth:
-                    yield self._frame(nxt, rgb.pop(nxt), depth.pop(nxt))
+                    c_img, d_img = rgb.pop(nxt), depth.pop(nxt)
+                    yield tolerant(
+                        nxt,
+                        f"{self.path.name} frame {nxt}",
+                        partial(self._frame, nxt, c_img, d_img),
+                    )
                     nxt += 1
                 # Depth kept for frames already emitted is dropped; stale entries cannot grow.
                 for k in [k for k in depth if k < nxt]:
@@ -598,7 +743,10 @@ class BagRecording:
             except Exception:  # e.g. a generator collected at interpreter shutdown
                 pass
 
-    def _frame(self, k: int, rgb: NDArray, depth: NDArray) -> Frame:
+    def _frame(self, k: int, rgb: Any, depth: Any) -> Frame:
+        for img in (rgb, depth):
+            if isinstance(img, BaseException):
+                raise img
         t = self._index[k].t
         p, age = self.pressure_at(t)
         return Frame(
@@ -773,9 +921,6 @@ def write_bag(
     wrench: bool = True,
     aligned: bool = False,
     tf: bool = False,
-    camera_info: bool = True,
-    pressure: bool = True,
-    depth_size: tuple[int, int] | None = None,
 ) -> Path:
     """Write frames the way punyo-bubble-kit records them (fixtures, conversions).
 
@@ -784,7 +929,6 @@ def write_bag(
     interpolated in time, as float32) received ``pressure_delay_s`` after it was sampled;
     a WrenchStamped per frame when ``wrench`` and the frames carry one. ``tf`` adds a
     ``/tf_static`` with the camera pose; ``aligned`` names depth ``aligned_depth_to_color``.
-    ``camera_info``/``pressure`` False and ``depth_size`` exist to write broken bags in tests.
     A bag's clock cannot go below 0 and the pressure stream starts ``PRESSURE_LEAD_S`` before
     the first frame: earlier frames (the simulator stamps its reference frames before 0) are
     all shifted so that the earliest is at ``PRESSURE_LEAD_S``.
@@ -848,10 +992,6 @@ def write_bag(
                 ns,
             )
             d: Any = np.asarray(f.depth, dtype=np.float32)
-            if depth_size is not None:
-                import cv2
-
-                d = cv2.resize(d, depth_size, interpolation=cv2.INTER_NEAREST)
             dh, dw = d.shape
             if depth_encoding.upper() == "16UC1":
                 raw = np.clip(np.rint(d / depth_unit), 0, 65535).astype("<u2")
@@ -878,37 +1018,37 @@ def write_bag(
             else:
                 raise ValueError(f"depth encoding {depth_encoding!r}: use 16UC1 or 32FC1")
             bag.write(t_depth, IMAGE, dmsg, ns)
-            if camera_info:
-                k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
-                p = [
-                    camera.fx,
-                    0.0,
-                    camera.cx,
-                    0.0,
-                    0.0,
-                    camera.fy,
-                    camera.cy,
-                    0.0,
-                    0.0,
-                    0.0,
-                    1.0,
-                    0.0,
-                ]
-                RoI = ts.types["sensor_msgs/msg/RegionOfInterest"]
-                info = ts.types[CAMERA_INFO](
-                    header=hdr,
-                    height=camera.height,
-                    width=camera.width,
-                    distortion_model="plumb_bob",
-                    d=np.asarray(camera.distortion, dtype=np.float64),
-                    k=np.asarray(k, dtype=np.float64),
-                    r=np.eye(3).reshape(-1),
-                    p=np.asarray(p, dtype=np.float64),
-                    binning_x=0,
-                    binning_y=0,
-                    roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-                )
-                bag.write(t_info, CAMERA_INFO, info, ns)
+            # camera_info, one per frame as realsense-ros publishes it
+            k = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+            p = [
+                camera.fx,
+                0.0,
+                camera.cx,
+                0.0,
+                0.0,
+                camera.fy,
+                camera.cy,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.0,
+            ]
+            RoI = ts.types["sensor_msgs/msg/RegionOfInterest"]
+            info = ts.types[CAMERA_INFO](
+                header=hdr,
+                height=camera.height,
+                width=camera.width,
+                distortion_model="plumb_bob",
+                d=np.asarray(camera.distortion, dtype=np.float64),
+                k=np.asarray(k, dtype=np.float64),
+                r=np.eye(3).reshape(-1),
+                p=np.asarray(p, dtype=np.float64),
+                binning_x=0,
+                binning_y=0,
+                roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+            )
+            bag.write(t_info, CAMERA_INFO, info, ns)
             if wrench and f.wrench is not None:
                 V3 = ts.types["geometry_msgs/msg/Vector3"]
                 wv = [float(x) for x in f.wrench]
@@ -924,7 +1064,7 @@ def write_bag(
                     ),
                     ns,
                 )
-        if pressure and frames:
+        if frames:
             t_s = np.arange(
                 frames[0].t - PRESSURE_LEAD_S, frames[-1].t + PRESSURE_LEAD_S, 1.0 / pressure_hz
             )
