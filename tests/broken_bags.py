@@ -1,7 +1,7 @@
 """ROS 2 bags for tests, good and damaged: ``bag_frames`` (small synthetic frames),
 ``rewrite_bag`` (copy a bag message by message through an edit: drop, damage or replace a
 message) and ``damaged_bag`` (one named damage per variant). Damage lives here, not in
-``bubble_rt.io.rosbag.write_bag``: the library writes good bags only."""
+``bubble_rt.io.bag_writer.write_bag``: the library writes good bags only."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
-from bubble_rt.io.rosbag import write_bag
+from bubble_rt.io.bag_writer import write_bag
 from synth_rgbd import dome_depth, texture
 
 T0 = 1_700_000_000.0

@@ -10,16 +10,11 @@ from broken_bags import INFO, PRESSURE, RAMP_PA_PER_S, T0, bag_frames, with_dept
 from bubble_rt.camera import Camera
 from bubble_rt.cli import main
 from bubble_rt.frames import Frame, FrameError
+from bubble_rt.io.bag_messages import NODE_FIELDS
+from bubble_rt.io.bag_topics import BagTopicError, choose_topics
+from bubble_rt.io.bag_writer import read_node_cloud, write_bag
 from bubble_rt.io.recordings import open_recording
-from bubble_rt.io.rosbag import (
-    NODE_FIELDS,
-    BagRecording,
-    BagTopicError,
-    choose_topics,
-    is_rosbag,
-    read_node_cloud,
-    write_bag,
-)
+from bubble_rt.io.rosbag import BagRecording, is_rosbag
 from synth_rgbd import dome_depth, texture
 
 # (the bag fixtures live in broken_bags; small_frames keeps its name for other test files)
@@ -201,7 +196,7 @@ def test_estimate_bag_errors_are_clear(tmp_path, capsys):
 
 
 def test_bag_wrench_carries_the_torque(tmp_path):
-    from bubble_rt.io.rosbag import BagWriter
+    from bubble_rt.io.bag_writer import BagWriter
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 

@@ -25,7 +25,8 @@ from broken_bags import (
 from bubble_rt.cli import main
 from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon.sources import SourceError, make_camera_source
-from bubble_rt.io.rosbag import BagTopicError, choose_topics, write_bag
+from bubble_rt.io.bag_topics import BagTopicError, choose_topics
+from bubble_rt.io.bag_writer import write_bag
 from test_reliability import start_daemon, status, wait_for
 
 pytestmark = pytest.mark.timeout(120)

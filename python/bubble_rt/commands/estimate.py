@@ -240,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
         mesh.save(args.save_mesh)
     bag = None
     if args.bag:
-        from bubble_rt.io.rosbag import BagWriter
+        from bubble_rt.io.bag_writer import BagWriter
 
         bag = BagWriter(args.bag)
     from bubble_rt.wrench import PatchFinder
