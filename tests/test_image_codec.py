@@ -183,3 +183,30 @@ def test_decoding_errors_are_value_errors():
         with pytest.raises(ImageDecodeError):
             image_array(msg)
     assert issubclass(ImageDecodeError, ValueError)
+
+
+def test_replay_skips_counts_and_names_a_corrupt_image_and_goes_on(tmp_path):
+    """Through the daemon's replay source: the run goes on past the bad frames."""
+    import time
+
+    from bubble_rt.daemon.service import Daemon
+    from bubble_rt.daemon.sources import ReplayCamera
+    from daemon_fakes import FakeProcessor, constant_pressure, fake_config
+
+    good = color_image(noisy_frame(2).rgb, 0.0, "jpeg")
+    cut = fox_compressed.CompressedImage(format="jpeg", data=good.data[:-100])
+    p = tmp_path / "bad.mcap"
+    _with_bad_colour(p, {2: cut, 4: fox_compressed.CompressedImage(format="png", data=b"\x89PNG")})
+    src = ReplayCamera(str(p), realtime=False, loop=False)
+    cfg = fake_config(**{"camera.pace": "fast", "camera.loop": False, "reference.frames": 1})
+    d = Daemon(cfg, camera=src, pressure=constant_pressure(), processor_factory=FakeProcessor)
+    d.start()
+    try:
+        end = time.monotonic() + 20
+        while not (src.finished.is_set() and d.frames_published >= 3) and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        d.stop()
+    assert src.stats.errors == {"bad_frame": 2} and src.stats.received == 4
+    assert [b.split(":")[0] for b in src.bad_frames] == ["bad.mcap frame 2", "bad.mcap frame 4"]
+    assert d.frames_published >= 3  # frame 0 is the reference; 1, 3 and 5 are solved
