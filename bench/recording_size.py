@@ -16,7 +16,7 @@ and reports the file size, the frames in it, MB per frame (file size over the fr
 images are in it, reference frames included), the messages the recorder dropped, the daemon's published and dropped frames
 and latency p50 / p99 (from the recording's force frames), and a 10-minute recording's size
 at the run's frame rate and at 30 Hz. Then, on 40 frames of the png run (and with ``--real
-DIR`` on a real recording's frames), the per-frame time and size of each encoding on one
+DIR`` on a real recording's frames), the per-frame CPU time and size of each encoding on one
 thread (the recorder's thread does it in the daemon), with the 16-bit PNG depth measured
 against the zstd chunks; and, with ``--forces Q``, the force difference of JPEG colour at
 quality Q: the lossless recording and the same frames with JPEG colour, each replayed through
@@ -134,7 +134,8 @@ def summarise(path: Path, stderr: str) -> dict:
 
 
 def encode_costs(frames: list, step_m: float = 1e-4) -> dict:
-    """Median ms per frame and mean MB per frame of each encoding of ``frames`` (one thread),
+    """Median CPU ms per frame (process time: what the encoder costs, not how long a loaded
+    machine made it wait) and mean MB per frame of each encoding of ``frames`` (one thread),
     and the 16-bit PNG of the depth that was measured against the zstd chunks: lossless only
     where every depth lies on the sensor's ``step_m`` grid (``depth_on_grid``: the share of
     pixels that do, 1.0 for lossless)."""
@@ -161,9 +162,9 @@ def encode_costs(frames: list, step_m: float = 1e-4) -> dict:
     for name, fn in codecs.items():
         ts, sizes = [], []
         for f in frames:
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             sizes.append(len(fn(f)))
-            ts.append((time.perf_counter() - t0) * 1e3)
+            ts.append((time.process_time() - t0) * 1e3)
         out[f"{name}_ms"] = float(np.median(ts))
         out[f"{name}_mb"] = float(np.mean(sizes)) / 1e6
     return out

@@ -6,7 +6,7 @@ scene). Depth goes in as ``foxglove.RawImage`` 32FC1 (metres) and is compressed 
 the recording's zstd chunks (about 0.14 MB per frame on the demo scene). A 16-bit PNG of the
 depth in its sensor unit was measured against that and not kept: it is lossless only where
 every pixel lies on the unit's grid (the simulator's mixed edge pixels do not), and where it is
-(the real D405 frames) it saves 0.04 MB per frame at four times the encoding time
+(the real D405 frames) it saves 0.03 MB per frame for 2.4 times the CPU
 (docs/bags-and-foxglove.md, "Recording size").
 
 Reading takes every encoding any version wrote (RawImage rgb8, 32FC1, 16UC1 in millimetres;
