@@ -8,7 +8,9 @@ The reference is captured from the given untouched frames; with a preset name fo
 file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
-timings_ms, wrench (6 or null), solver_status}]}.
+timings_ms, wrench (6 or null), solver_status, net_torque_mesh (3, N m, mesh frame, about its
+origin: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
+normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
@@ -159,11 +161,18 @@ def run(args: argparse.Namespace) -> int:
         from bubble_rt.io.rosbag import BagWriter
 
         bag = BagWriter(args.bag)
+    from bubble_rt.wrench import PatchFinder
+
+    finder = PatchFinder(mesh)
     frames_out = []
     for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
         frame = rec[i]
         e = estimator.process(frame)
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        tau_mesh = finder.net_torque(e.node_forces)
+        patches = finder.patches(
+            e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
+        )
         if bag is not None:
             bag.write(
                 frame.t,
@@ -172,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
                 e.node_forces,
                 e.normal_pressure,
                 e.contact,
+                net_torque=tau_mesh,
             )
         frames_out.append(
             {
@@ -184,6 +194,20 @@ def run(args: argparse.Namespace) -> int:
                 "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
                 "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
                 "solver_status": getattr(e.info, "status", None),
+                "net_torque_mesh": tau_mesh.tolist(),
+                "patches": [
+                    {
+                        "centroid": p.centroid.tolist(),
+                        "pressure_centroid": p.pressure_centroid.tolist(),
+                        "area": p.area,
+                        "force": p.force.tolist(),
+                        "normal": p.normal.tolist(),
+                        "peak_pressure": p.peak_pressure,
+                        "torque": p.torque.tolist(),
+                        "nodes": p.nodes.tolist(),
+                    }
+                    for p in patches
+                ],
             }
         )
     cam = rec.camera

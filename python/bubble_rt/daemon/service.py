@@ -122,8 +122,8 @@ class Daemon:
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
         self._recording_fault_counted = False
-        #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
-        #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
+        #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0
@@ -478,7 +478,13 @@ class Daemon:
                 timings[key] = float(v)
             contact = np.asarray(est.contact, dtype=bool)
             forces = np.asarray(est.node_forces, dtype=np.float64)
-            patches = self._patches.patches(contact, forces, getattr(est, "displacements", None))
+            patches = self._patches.patches(
+                contact,
+                forces,
+                getattr(est, "displacements", None),
+                est.normal_pressure,
+                getattr(est, "support", None),
+            )
             reasons = list(item.reasons)
             vf = float(getattr(est, "valid_node_fraction", 1.0))
             if vf < 0.5:
@@ -511,6 +517,7 @@ class Daemon:
                 solver_info=getattr(est, "info", None),
                 valid_node_fraction=vf,
                 degraded_reasons=reasons,
+                net_torque=self._patches.net_torque(forces),
             )
             attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
         except Exception as exc:

@@ -72,8 +72,8 @@ class Pipeline:
 
     Attributes:
         kind: the EstimatorKind; ``params`` lists what ``reconfigure`` accepts.
-        estimator: the estimator object; tracker: the deformation tracker (None when the kind
-        reads frames itself).
+        estimator: the estimator object.
+        tracker: the deformation tracker (None when the kind reads frames itself).
     """
 
     def __init__(

@@ -315,6 +315,7 @@ class Simulator:
             contact=run.contact[i],
             converged=bool(run.converged[i]),
             locator=self._locator,
+            interior=interior,
         )
 
     def _images(
