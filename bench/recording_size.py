@@ -271,14 +271,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(args.keep or d)
         tmp.mkdir(parents=True, exist_ok=True)
-        for s in args.settings:
-            out = tmp / f"{s.replace(':', '_')}.mcap"
+        for i, s in enumerate(args.settings):  # a setting may repeat (runs alternated)
+            name = s.replace(":", "_")
+            out = tmp / (f"{name}.mcap" if s not in args.settings[:i] else f"{name}-{i}.mcap")
             cmd, err = record(s, args.seconds, out)
             if not out.exists():
                 print(f"{s}: no recording\n{err}", file=sys.stderr)
                 continue
-            results[s] = summarise(out, err)
-            print(s, json.dumps(results[s]), flush=True)
+            results[out.stem] = summarise(out, err)
+            print(s, json.dumps(results[out.stem]), flush=True)
         png = tmp / "png.mcap"
         if png.exists():
             from bubble_rt.io.mcap import McapRecording
