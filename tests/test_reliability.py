@@ -695,3 +695,22 @@ def test_serve_refuses_to_record_over_an_existing_file(tmp_path, capsys):
     args = ["serve", "--camera", f"replay:{root}", "--record", str(keep), "--duration", "0.1"]
     assert main(args + net) == 1
     assert "file exists" in capsys.readouterr().err and keep.read_text() == "an earlier run\n"
+
+
+def test_mcap_with_the_reference_only_is_reported_and_ends(tmp_path, capsys):
+    """An MCAP cut after its reference frames was accepted and the replay stalled forever."""
+    from bubble_rt.cli import main
+
+    p = tmp_path / "ref_only.mcap"
+    write_recording(p, [], CAM, reference=[make_frame(i) for i in range(3)])
+    with pytest.raises(SourceError, match="no frame to replay after the reference"):
+        ReplayCamera(str(p), realtime=False)
+    args = ["serve", "--camera", f"replay:{p}", "--duration", "30"]
+    net = ["--pub", "tcp://127.0.0.1:*", "--control", "tcp://127.0.0.1:*"]
+    t = time.monotonic()
+    assert main(args + net) == 1
+    assert time.monotonic() - t < 20  # refused at start, not after the 30 s duration
+    assert "no frame to replay" in capsys.readouterr().err
+    out = tmp_path / "o.json"
+    assert main(["estimate", str(p), "--json", str(out), "--no-progress"]) == 3
+    assert "no frame in the recording" in capsys.readouterr().err and not out.exists()

@@ -6,43 +6,19 @@ import json
 
 import numpy as np
 import pytest
+from broken_bags import INFO, PRESSURE, RAMP_PA_PER_S, T0, bag_frames, with_depth_size, without
 from bubble_rt.camera import Camera
 from bubble_rt.cli import main
 from bubble_rt.frames import Frame, FrameError
+from bubble_rt.io.bag_messages import NODE_FIELDS
+from bubble_rt.io.bag_topics import BagTopicError, choose_topics
+from bubble_rt.io.bag_writer import read_node_cloud, write_bag
 from bubble_rt.io.recordings import open_recording
-from bubble_rt.io.rosbag import (
-    NODE_FIELDS,
-    BagRecording,
-    BagTopicError,
-    choose_topics,
-    is_rosbag,
-    read_node_cloud,
-    write_bag,
-)
+from bubble_rt.io.rosbag import BagRecording, is_rosbag
 from synth_rgbd import dome_depth, texture
 
-T0 = 1_700_000_000.0
-RAMP_PA_PER_S = 300.0  # pressure ramp: interpolation between 100 Hz readings is exact
-
-
-def small_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[Frame], Camera]:
-    cam = Camera(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
-    d = dome_depth(cam).astype(np.float32)
-    if mm:  # 16UC1 carries whole millimetres
-        d = (np.round(d * 1000) / 1000).astype(np.float32)
-    rgb = texture(cam.height, cam.width)
-    frames = [
-        Frame(
-            rgb=np.roll(rgb, i, axis=1),
-            depth=d,
-            pressure_pa=101_300.0 + RAMP_PA_PER_S * (i / 30),
-            t=T0 + i / 30,
-            wrench=np.arange(6.0) + i if wrench else None,
-            index=i,
-        )
-        for i in range(n)
-    ]
-    return frames, cam
+# (the bag fixtures live in broken_bags; small_frames keeps its name for other test files)
+small_frames = bag_frames
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -118,14 +94,14 @@ def test_depth_unit_setting(tmp_path):
 
 def test_incomplete_bags_name_what_is_missing(tmp_path):
     frames, cam = small_frames(2)
-    p = write_bag(tmp_path / "noinfo", frames, cam, camera_info=False)
+    p = without(tmp_path, INFO, frames, cam, "noinfo")
     with pytest.raises(FrameError, match=r"info: no sensor_msgs/msg/CameraInfo"):
         open_recording(p)
-    p = write_bag(tmp_path / "nopressure", frames, cam, pressure=False)
+    p = without(tmp_path, PRESSURE, frames, cam, "nopressure")
     with pytest.raises(BagTopicError, match=r"pressure: no std_msgs/msg/Float32") as exc:
         open_recording(p)
     assert "/bubble_1/color/image_rect_raw  [sensor_msgs/msg/Image]" in str(exc.value)
-    p = write_bag(tmp_path / "sizes", frames, cam, depth_size=(40, 30))
+    p = with_depth_size(tmp_path, frames, cam, (40, 30))
     with pytest.raises(FrameError, match=r"colour 80 x 60 .* and depth 40 x 30 .* differ"):
         open_recording(p)
     with pytest.raises(FrameError, match="depth unit must be positive"):
@@ -214,13 +190,13 @@ def test_estimate_writes_a_bag_read_back_with_rosbags(tmp_path):
 
 def test_estimate_bag_errors_are_clear(tmp_path, capsys):
     frames, cam = small_frames(2)
-    p = write_bag(tmp_path / "nopressure", frames, cam, pressure=False)
+    p = without(tmp_path, PRESSURE, frames, cam, "nopressure")
     assert main(["estimate", str(p), "--json", str(tmp_path / "o.json")]) == 2
     assert "pressure: no std_msgs/msg/Float32" in capsys.readouterr().err
 
 
 def test_bag_wrench_carries_the_torque(tmp_path):
-    from bubble_rt.io.rosbag import BagWriter
+    from bubble_rt.io.bag_writer import BagWriter
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 

@@ -186,11 +186,25 @@ class PressureConfig:
     )
     baud: int = option(115200, "serial port speed", lo=300, hi=10_000_000, unit="baud")
     default_unit: str = option("hPa", "unit of readings that carry none", choices=("hPa", "Pa"))
+    #: The default range (absolute) holds every place a sensor works and every squeeze a bubble
+    #: survives: 30 kPa is below the lowest ambient (33.7 kPa on Everest's summit), 200 kPa is
+    #: the highest ambient (108.5 kPa) plus more than flattening a whole dome raises its air
+    #: (a Punyo about 56 kPa, the simulator's bubble about 16 kPa: tests/test_plausibility.py).
     min_pa: float = option(
-        30000.0, "readings below are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+        30000.0,
+        "readings below are rejected as out of range (absolute); a frame's pressure below is "
+        "replaced by the last good one (frame degraded), a reference below is refused",
+        lo=1,
+        hi=1e7,
+        unit="Pa",
     )
     max_pa: float = option(
-        200000.0, "readings above are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+        200000.0,
+        "readings above are rejected as out of range (absolute); a frame's pressure above is "
+        "replaced by the last good one (frame degraded), a reference above is refused",
+        lo=1,
+        hi=1e7,
+        unit="Pa",
     )
     stale_timeout_s: float = option(
         0.25,
@@ -360,6 +374,67 @@ class FlowSection:
 
 
 @dataclass(frozen=True)
+class PlausibilitySection:
+    """Plausibility checks: a frame the physics cannot support is published degraded with a
+    reason (bubble_rt.estimation.plausibility; docs/daemon.md, Degraded frames)."""
+
+    max_press_speed_m_s: float = option(
+        0.5,
+        "fastest an object pushes the whole membrane footprint in; it bounds the pressure rate "
+        "(rest pressure x footprint x speed / air volume of the sensor profile's bubble: a "
+        "Punyo 0.9 kPa per ms at the default); a faster change is replaced by the last good "
+        "pressure (frame degraded)",
+        lo=0.001,
+        hi=100,
+        unit="m/s",
+    )
+    min_valid_fraction: float = option(
+        0.5, "fewer nodes tracked than this fraction: frame degraded", lo=0.0, hi=1.0
+    )
+    dark_level: float = option(
+        10.0,
+        "colour image mean below this: black (lens covered, lights off), frame degraded",
+        lo=0.0,
+        hi=255.0,
+        unit="of 255",
+    )
+    bright_level: float = option(
+        245.0,
+        "colour image mean above this: saturated, frame degraded",
+        lo=0.0,
+        hi=255.0,
+        unit="of 255",
+    )
+    frozen_frames: int = option(
+        5,
+        "this many frames in a row bit-identical to their predecessor (colour and depth): "
+        "frozen, frame degraded (only for a source whose reference frames differ: a noise-free "
+        "simulator repeats itself honestly)",
+        lo=1,
+        hi=100_000,
+        unit="frames",
+    )
+    max_force_without_contact_n: float = option(
+        3.0,
+        "a net force above this with no contact node: frame degraded",
+        lo=0.0,
+        hi=1e4,
+        unit="N",
+    )
+    reference_max_force_n: float = option(
+        1.0,
+        "the untouched reference frames must read at most this force, else the reference is "
+        "refused (wrong camera pose, intrinsics or sensor profile)",
+        lo=0.0,
+        hi=1e4,
+        unit="N",
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+@dataclass(frozen=True)
 class ReferenceSection:
     """The untouched membrane: averaged over the first ``frames`` frames (and on tare)."""
 
@@ -456,6 +531,7 @@ class DaemonConfig:
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
     solver: SolverSection = field(default_factory=SolverSection)
     flow: FlowSection = field(default_factory=FlowSection)
+    plausibility: PlausibilitySection = field(default_factory=PlausibilitySection)
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)

@@ -69,9 +69,8 @@ class EstimatorProcessor:
         self.pipeline.cold_start()
 
     def set_reference(self, frames: list[Frame]) -> None:
-        from bubble_rt.estimation.deformation import Reference
-
-        self.pipeline.set_reference(Reference.capture(frames))
+        """Tare; a reference the plausibility checks refuse raises and the old one stays."""
+        self.pipeline.retake_reference(frames)
 
     def reconfigure(self, params: dict[str, float]) -> None:
         self.pipeline.reconfigure(params)

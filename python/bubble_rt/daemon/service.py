@@ -400,10 +400,13 @@ class Daemon:
         """Write the sensor profile's ambient pressure into the configuration (unless it gives
         one), so that status, recordings and replays carry the value in use."""
         est = self.config.estimator
+        prof = est.sensor_profile(getattr(cam, "layout", "sim"))
         if not est.ambient_pa:
-            prof = est.sensor_profile(getattr(cam, "layout", "sim"))
             log.info("sensor profile %s: ambient pressure %.0f Pa", prof.name, prof.ambient_pa)
-            self.config = replace(self.config, estimator=replace(est, ambient_pa=prof.ambient_pa))
+            est = replace(est, ambient_pa=prof.ambient_pa)
+        # "auto" resolved by the camera's layout: the estimator (its plausibility bounds read
+        # the profile's bubble) is built from the configuration alone.
+        self.config = replace(self.config, estimator=replace(est, profile=prof.name))
 
     def _install_reference(self, frames: list[Frame]) -> None:
         try:
@@ -487,8 +490,8 @@ class Daemon:
             )
             reasons = list(item.reasons)
             vf = float(getattr(est, "valid_node_fraction", 1.0))
-            if vf < 0.5:
-                reasons.append(f"only {vf:.0%} of nodes tracked")
+            # The pipeline's plausibility checks (inputs and result) join the daemon's own.
+            reasons += list(getattr(est, "degraded_reasons", []))
             for problem in (
                 faults.solver_problem(getattr(est, "info", None)),
                 faults.forces_problem(forces, est.net_force),

@@ -205,6 +205,7 @@ class Deformation:
         timings_ms: {"flow": ms, "lift": ms}.
         flags: N uint8 reason bits (FLAG_*), 0 for valid nodes.
         flow: N x 2 flow sampled at the node projections (pixels), zeros for oracle.
+        degraded_reasons: why the frame's input is implausible (set by the Pipeline's checks).
     """
 
     U: NDArray[np.float64]
@@ -214,6 +215,7 @@ class Deformation:
     timings_ms: dict[str, float] = field(default_factory=dict)
     flags: NDArray[np.uint8] | None = None
     flow: NDArray[np.float64] | None = None
+    degraded_reasons: list[str] = field(default_factory=list)
 
 
 def _roi(uv: NDArray, ok: NDArray, camera: Camera, margin: int) -> tuple[int, int, int, int]:
