@@ -49,12 +49,13 @@ def test_round_trip_frames_camera_and_reference(tmp_path):
     assert len(r) == 2 and r[0].rgb[0, 0, 0] == 100 and [f.index for f in r] == [-2, -1]
 
 
-def test_images_use_foxglove_raw_image_schema(tmp_path):
+def test_images_use_foxglove_image_schemas(tmp_path):
     p = tmp_path / "r.mcap"
     write_recording(p, [make_frame(0)], Camera.d405())
     msgs = {t: m for t, m, _, _ in iter_messages(p)}
-    assert type(msgs[TOPIC_RGB]).DESCRIPTOR.full_name == "foxglove.RawImage"
-    assert msgs[TOPIC_RGB].encoding == "rgb8" and msgs[TOPIC_RGB].step == 32 * 3
+    assert type(msgs[TOPIC_RGB]).DESCRIPTOR.full_name == "foxglove.CompressedImage"
+    assert msgs[TOPIC_RGB].format == "png"  # write_recording keeps colour lossless
+    assert type(msgs[TOPIC_DEPTH]).DESCRIPTOR.full_name == "foxglove.RawImage"
     assert msgs[TOPIC_DEPTH].encoding == "32FC1" and msgs[TOPIC_DEPTH].step == 32 * 4
 
 
@@ -152,3 +153,56 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
     for k in common:
         np.testing.assert_allclose(replayed[k], recorded[k])
         np.testing.assert_allclose(replayed_tau[k], torques[k])
+
+
+def _forces_by_frame(path: Path) -> dict[int, np.ndarray]:
+    return {
+        int(m.frame_index): np.asarray(m.node_forces) for m in McapRecording(path).force_frames()
+    }
+
+
+def test_lossless_recording_replays_to_identical_estimator_forces(tmp_path):
+    """Issue 21: the demo scene through the real estimator, recorded with lossless colour
+    (png) and the zstd-compressed float depth, replays to the live run's node forces, every
+    frame, to the last bit."""
+    live, again = tmp_path / "live.mcap", tmp_path / "replay.mcap"
+    common = {
+        "camera.pace": "fast",
+        "camera.loop": False,
+        "estimator.mesh": "coarse",
+        "recording.color": "png",
+        "recording.queue": 100_000,  # the test compares every frame: the writer drops none
+        # A solve cut by its time budget depends on the machine's load, not on the input.
+        "solver.time_limit_ms": 0.0,
+    }
+    d = Daemon(fake_config(**common, **{"camera.source": "sim", "recording.path": str(live)}))
+    d.start()
+    try:
+        assert d.wait_ready(60)
+        end = time.monotonic() + 60
+        while d.frames_published < 12 and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        writer = d.recorder
+        d.stop()
+    assert writer.finished.wait(60) and not writer.failed and writer.dropped == 0
+    recorded = _forces_by_frame(live)
+    assert len(recorded) >= 12
+    d2 = Daemon(
+        fake_config(**common, **{"camera.source": f"replay:{live}", "recording.path": str(again)})
+    )
+    d2.start()
+    try:
+        end = time.monotonic() + 60
+        while d2.frames_published < len(recorded) and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        writer = d2.recorder
+        d2.stop()
+    assert writer.finished.wait(60) and not writer.failed
+    replayed = _forces_by_frame(again)
+    assert set(recorded) <= set(replayed)
+    for k in sorted(recorded):
+        assert np.abs(recorded[k]).max() > 0 or k < 3  # forces, not zeros throughout
+        np.testing.assert_allclose(replayed[k], recorded[k], rtol=0, atol=1e-12)
+    assert max(np.abs(f).max() for f in recorded.values()) > 1e-3
