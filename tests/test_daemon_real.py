@@ -26,6 +26,9 @@ def test_replay_of_real_recording_gives_no_force_without_contact(tmp_path):
             "reference.frames": 5,
             "estimator.mesh": "coarse",
             "recording.path": str(tmp_path / "real.mcap"),
+            # Solved to tolerance: a solve cut by the real-time limit on a loaded machine is
+            # not what this test is about (it read 2.2 N on an untouched frame at load 15).
+            "solver.time_limit_ms": 0.0,
         }
     )
     d = Daemon(cfg).start()
