@@ -1,0 +1,114 @@
+"""The simulated camera's renderer process (bubble_rt.daemon.sim_producer): its wire format,
+that its frames equal the simulator's, and that it never outlives the daemon (SIGINT, SIGTERM,
+--duration, the daemon killed)."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bubble_rt.daemon.sim_producer import (
+    frame_message,
+    message_frame,
+    read_message,
+    write_message,
+)
+from bubble_rt.io.client import Subscriber
+from daemon_fakes import free_port, make_frame
+
+pytestmark = pytest.mark.timeout(120)
+TESTS = Path(__file__).resolve().parent
+
+
+def test_frame_round_trips_through_the_wire_format():
+    f = make_frame(7, push=2.0)
+    f.meta["reference"] = True
+    buf = io.BytesIO()
+    fields, arrays = frame_message(f)
+    write_message(buf, "frame", arrays, **fields)
+    write_message(buf, "pass_end")
+    buf.seek(0)
+    header, got = read_message(buf)  # type: ignore[misc]
+    g = message_frame(header, got, truth=None)
+    assert header["kind"] == "frame" and g.index == 7 and g.t == f.t
+    assert np.array_equal(g.rgb, f.rgb) and np.array_equal(g.depth, f.depth)
+    assert g.pressure_pa == f.pressure_pa and g.meta == f.meta
+    assert read_message(buf)[0]["kind"] == "pass_end"  # type: ignore[index]
+    assert read_message(buf) is None  # end of stream
+
+
+def test_truncated_message_reads_as_end_of_stream():
+    buf = io.BytesIO()
+    fields, arrays = frame_message(make_frame(1))
+    write_message(buf, "frame", arrays, **fields)
+    cut = io.BytesIO(buf.getvalue()[:-100])
+    assert read_message(cut) is None
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out += [int(c) for c in text]
+    return out
+
+
+def _gone(pid: int, timeout: float = 3.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return True
+        if state == "Z":  # exited, not yet reaped by its (dead) parent's reaper
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _serve(*extra: str) -> tuple[subprocess.Popen, str, str]:
+    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS)] + [p for p in sys.path if p])
+    proc = subprocess.Popen(
+        [sys.executable, str(TESTS / "daemon_fakes.py"), "--sim", "--pub", pub]
+        + ["--control", ctl, *extra],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    return proc, pub, ctl
+
+
+def _producer_of(proc: subprocess.Popen, pub: str, ctl: str) -> int:
+    with Subscriber(pub, ctl, timeout_s=60) as sub:
+        assert len(list(sub.frames(count=5, timeout_s=60))) == 5
+    (child,) = _children(proc.pid)  # the renderer process
+    cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+    assert b"bubble_rt.daemon.sim_producer" in cmd
+    return child
+
+
+@pytest.mark.parametrize("how", ["sigint", "sigterm", "duration", "sigkill"], ids=lambda s: str(s))
+def test_renderer_process_never_outlives_the_daemon(how):
+    proc, pub, ctl = _serve(*(["--duration", "4"] if how == "duration" else []))
+    try:
+        child = _producer_of(proc, pub, ctl)
+        if how != "duration":
+            sig = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL}
+            proc.send_signal(sig[how])
+        proc.wait(timeout=10.0)
+        assert _gone(child), f"renderer process {child} still running after the daemon ended"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    if how != "sigkill":
+        assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
