@@ -112,3 +112,38 @@ def test_renderer_process_never_outlives_the_daemon(how):
             proc.wait()
     if how != "sigkill":
         assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
+
+
+def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators(
+    tmp_path, monkeypatch
+):
+    import threading
+
+    from bubble_rt.daemon.sim_producer import reference_cache_path
+    from bubble_rt.daemon.sources import SimCamera
+    from bubble_rt.sim import Simulator
+    from test_sim_truth_publish import TINY_SCENE
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY_SCENE)
+    want = Simulator(str(scene)).reference_frames(3)
+    stop = threading.Event()
+    for attempt in ("rendered by the child", "read from the cache"):
+        cam = SimCamera(str(scene))
+        try:
+            got = cam.producer.reference_frames(3, stop)
+        finally:
+            cam.stop()
+        assert len(got) == 3, attempt
+        for g, w in zip(got, want, strict=True):
+            assert np.array_equal(g.rgb, w.rgb) and np.array_equal(g.depth, w.depth), attempt
+            assert g.pressure_pa == w.pressure_pa and g.t == w.t, attempt
+            assert g.truth.pressure_pa == w.truth.pressure_pa, attempt
+        path = reference_cache_path(cam.producer.sim, 3)
+        assert path is not None
+        deadline = time.monotonic() + 10
+        while not path.exists() and time.monotonic() < deadline:  # written in the background
+            time.sleep(0.05)
+        assert path.exists()
+    assert cam.producer.frames_received == 0  # the second camera rendered nothing
