@@ -147,3 +147,39 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
             time.sleep(0.05)
         assert path.exists()
     assert cam.producer.frames_received == 0  # the second camera rendered nothing
+
+
+def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_path, monkeypatch):
+    from bubble_rt.daemon.sim_producer import pass_cache_path
+    from bubble_rt.daemon.sources import SimCamera
+    from test_sim_truth_publish import TINY_SCENE
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY_SCENE)
+
+    def first_frames(cam, n):  # type: ignore[no-untyped-def]
+        cam.prepare()
+        cam.start()
+        try:
+            return [cam.output.get(60.0) for _ in range(n)]
+        finally:
+            cam.stop()
+
+    cam = SimCamera(str(scene), lossless=True)
+    assert cam.cached_pass is None
+    rendered = first_frames(cam, 8)  # a whole pass (6) and the start of the replay
+    path = pass_cache_path(cam.producer.sim)
+    assert path is not None
+    deadline = time.monotonic() + 20
+    while not path.exists() and time.monotonic() < deadline:  # written in the background
+        time.sleep(0.05)
+    again = SimCamera(str(scene), lossless=True)
+    assert again.cached_pass is not None and len(again.cached_pass) == 6
+    replayed = first_frames(again, 8)
+    assert again.producer.frames_received == 0  # nothing rendered
+    for r, g in zip(rendered, replayed, strict=True):
+        assert r.index == g.index
+        assert np.array_equal(r.rgb, g.rgb) and np.array_equal(r.depth, g.depth)
+        assert r.pressure_pa == g.pressure_pa
+        assert np.allclose(r.truth.net_force, g.truth.net_force)

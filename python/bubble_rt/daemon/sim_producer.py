@@ -264,11 +264,11 @@ class ProducedTruth:
 
 
 # ------------------------------------------------------------------------------ reference cache
-def reference_cache_path(sim: Any, n: int) -> Path | None:
-    """Where ``n`` rendered reference frames of ``sim``'s scene are kept, or None (a simulator
-    without a scene description, e.g. a test fake). The key hashes the scene (seed, sensor,
-    effects, ...), ``n``, the simulator's code (every ``bubble_rt/sim`` module and the C++
-    core the renderer calls) and the numpy version: rendering them again gives the same bytes."""
+def _render_key(sim: Any, what: str, n: int) -> str | None:
+    """A key for frames ``sim`` rendered, or None (a simulator without a scene description,
+    e.g. a test fake). It hashes the scene (seed, sensor, effects, ...), ``what`` and ``n``,
+    the simulator's code (every ``bubble_rt/sim`` module and the C++ core the renderer calls)
+    and the versions: rendering them again gives the same bytes."""
     import dataclasses
 
     import bubble_rt
@@ -280,10 +280,73 @@ def reference_cache_path(sim: Any, n: int) -> Path | None:
     pkg = Path(bubble_rt.__file__).parent
     code = tuple(sorted((pkg / "sim").glob("*.py"))) + tuple(sorted(pkg.glob("_core*.so")))
     described = json.dumps(dataclasses.asdict(scene), sort_keys=True, default=str)
-    key = _diskcache.source_key(
-        "sim-reference", described, n, bubble_rt.__version__, np.__version__, files=code
+    return _diskcache.source_key(
+        what, described, n, bubble_rt.__version__, np.__version__, files=code
     )
-    return _diskcache.cache_dir() / f"simref-{key}.npz"
+
+
+def reference_cache_path(sim: Any, n: int) -> Path | None:
+    """Where ``n`` rendered reference frames of ``sim``'s scene are kept (about 2 MB a frame),
+    or None (see ``_render_key``)."""
+    from bubble_rt import _diskcache
+
+    key = _render_key(sim, "sim-reference", n)
+    return None if key is None else _diskcache.cache_dir() / f"simref-{key}.npz"
+
+
+def pass_cache_path(sim: Any) -> Path | None:
+    """The folder where one rendered pass of ``sim``'s scene is kept (``rgb.npy``,
+    ``depth.npy``, ``fields.json``; about 2 MB a frame, 260 MB for the 120-frame demo), or
+    None (see ``_render_key``)."""
+    from bubble_rt import _diskcache
+
+    key = _render_key(sim, "sim-pass", int(sim.scene.frames) if hasattr(sim, "scene") else 0)
+    return None if key is None else _diskcache.cache_dir() / f"simpass-{key}"
+
+
+def load_pass(path: Path) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
+    """A cached pass as (fields, arrays) per frame, the images memory-mapped from the files
+    (read as the frames are used, copy-on-write), or None when absent or unreadable."""
+    try:
+        fields = json.loads((path / "fields.json").read_text())
+        rgb = np.load(path / "rgb.npy", mmap_mode="c")
+        depth = np.load(path / "depth.npy", mmap_mode="c")
+        if not (len(rgb) == len(depth) == len(fields)):
+            return None
+        return [(f, {"rgb": rgb[k], "depth": depth[k]}) for k, f in enumerate(fields)]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def store_pass(path: Path, frames: list[Frame]) -> None:
+    """Keep one rendered pass (frames with rgb and depth) for the next runs; written into a
+    temporary folder renamed into place, so a reader never sees half of it."""
+    import shutil
+    import tempfile
+
+    if not frames or any(f.rgb is None or f.depth is None for f in frames) or path.exists():
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, suffix=".tmp"))
+    try:
+        for name in ("rgb", "depth"):
+            first = getattr(frames[0], name)
+            out = np.lib.format.open_memmap(
+                tmp / f"{name}.npy",
+                mode="w+",
+                dtype=first.dtype,
+                shape=(len(frames),) + first.shape,
+            )
+            for k, f in enumerate(frames):
+                out[k] = getattr(f, name)
+            out.flush()
+            del out
+        (tmp / "fields.json").write_text(json.dumps([frame_message(f)[0] for f in frames]))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # not cached (disk full, read-only, or another run stored it first)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def load_reference(path: Path) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
@@ -347,6 +410,7 @@ class SimProducer:
         self._reader: threading.Thread | None = None
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
+        self._preload_lock = threading.Lock()
         self._refs: queue.Queue[Any] = queue.Queue()
         self._stream: queue.Queue[Any] = queue.Queue(0 if keep_pass else AHEAD_FRAMES)
         self._truths: dict[int | None, Any] = {}
@@ -453,6 +517,7 @@ class SimProducer:
                         header["total"],
                     )
             elif kind == "physics":
+                self.preload_truth()
                 if header["cold"]:
                     log.info(
                         "physics of scene %r simulated in %.1f s (cached for the next runs)",
@@ -499,9 +564,25 @@ class SimProducer:
             self._truths[index] = ProducedTruth(truth_of, index, self)
         return self._truths[index]
 
+    def preload_truth(self) -> None:
+        """Load the (cached) physics and what every truth shares (the surface locator) now,
+        not in the solve thread at the first frame's truth; idempotent, thread-safe."""
+        with self._preload_lock:
+            truth = self._truth(None)
+            if truth is not None:
+                try:
+                    truth._get()
+                except Exception as exc:  # no physics yet (the child computes it): later
+                    log.debug("truth not preloaded: %s", exc)
+
+    def frame_of(self, fields: dict[str, Any], arrays: dict[str, np.ndarray]) -> Frame:
+        """A frame of the stream from its (fields, arrays), with its truth."""
+        return message_frame(fields, arrays, self._truth(int(fields["index"])))
+
     def contact_mask(self, index: int, mesh: Any) -> np.ndarray | None:
         """The true contact of scene frame ``index`` on ``mesh``'s nodes, derived by the child;
         None when it is not there yet (unless ``wait_for_truth``)."""
+        self.start()  # not started yet when the frames came from the pass cache
         with self._masks_cond:
             if mesh is not self._mesh:
                 self._send_mesh(mesh)

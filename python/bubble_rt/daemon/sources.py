@@ -363,9 +363,17 @@ class SimCameraSource(IterableCamera):
 
     producer: Any
 
+    #: One rendered pass read from the disk cache (then nothing is rendered), or None.
+    cached_pass: list[Any] | None = None
+
     def prepare(self) -> None:
-        """Start the renderer process now, so it loads while the daemon sets up."""
+        """Start the renderer process now, so it loads while the daemon sets up (with a cached
+        pass it renders nothing: it loads the physics, then derives the true contact)."""
         self.producer.start()
+        if self.cached_pass is not None:  # the physics is cached too: load it meanwhile
+            threading.Thread(
+                target=self.producer.preload_truth, name="sim-truth-preload", daemon=True
+            ).start()
 
     def stop(self, timeout: float = 1.0) -> None:
         super().stop(timeout)
@@ -387,20 +395,25 @@ def SimCamera(
     carry the simulator's ground truth (``Frame.truth``). Frame indices keep counting across
     loops (``index = pass * scene.frames + i``), so frame ``k`` shows scene frame
     ``k % scene.frames``. With ``prerender`` the first pass is kept in memory and later passes
-    replay it (the renderer process is then idle). ``simulator``: the simulator class as
+    replay it (the renderer process is then idle); it is also stored in the disk cache
+    (``sim_producer.pass_cache_path``, keyed by the scene and the simulator's code), and later
+    runs replay it from there from their first frame, rendering nothing. ``simulator``: the simulator class as
     ``module:attribute`` (default ``bubble_rt.sim:Simulator``; tests name a fake).
     """
-    from bubble_rt.daemon.sim_producer import DEFAULT_SIMULATOR, SimProducer, load_simulator_class
+    from bubble_rt.daemon import sim_producer as sp
 
-    path = simulator or DEFAULT_SIMULATOR
+    path = simulator or sp.DEFAULT_SIMULATOR
     try:
-        sim = load_simulator_class(path)(scene)  # the scene and camera; no physics yet
+        sim = sp.load_simulator_class(path)(scene)  # the scene and camera; no physics yet
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)
-    producer = SimProducer(
+    producer = sp.SimProducer(
         scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
     )
+    # With prerender, a pass rendered by an earlier run is read from the disk cache.
+    pass_path = sp.pass_cache_path(sim) if prerender else None
+    stored = None if pass_path is None else sp.load_pass(pass_path)
     cache: list[Frame] = []
     state = {"pass": 0, "complete": False}
     src: SimCameraSource
@@ -409,6 +422,11 @@ def SimCamera(
         k = state["pass"]
         state["pass"] += 1
         offset = k * n_frames
+        if stored is not None:
+            for fields, arrays in stored:
+                f = producer.frame_of(fields, arrays)
+                yield replace(f, index=f.index + offset)
+            return
         if state["complete"]:
             for f in cache:
                 yield replace(f, index=f.index + offset)
@@ -419,6 +437,13 @@ def SimCamera(
                 cache.append(f)
             yield replace(f, index=f.index + offset)
         state["complete"] = prerender
+        if prerender and pass_path is not None:  # the next runs read it from disk
+            threading.Thread(
+                target=sp.store_pass,
+                args=(pass_path, list(cache)),
+                name="sim-pass-cache",
+                daemon=True,
+            ).start()
 
     def reference(n: int) -> list[Frame] | None:
         return producer.reference_frames(n, src._stop)
@@ -434,6 +459,7 @@ def SimCamera(
         keep_index=True,
     )
     src.producer = producer
+    src.cached_pass = stored
     # Paced by the estimator (every frame processed): a frame waits for its true contact.
     producer.wait_for_truth = lossless
     src.name = f"sim:{scene}"
