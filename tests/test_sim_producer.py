@@ -115,8 +115,9 @@ def test_renderer_process_never_outlives_the_daemon(how):
 
 
 def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, caplog
 ):
+    import logging
     import threading
 
     from bubble_rt.daemon.sim_producer import reference_cache_path
@@ -127,19 +128,15 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
     scene = tmp_path / "tiny.toml"
     scene.write_text(TINY_SCENE)
-    want = Simulator(str(scene)).reference_frames(3)
     stop = threading.Event()
+    caplog.set_level(logging.INFO, logger="bubble_rt.daemon.sources")
+    got = {}
     for attempt in ("rendered by the child", "read from the cache"):
         cam = SimCamera(str(scene))
         try:
-            got = cam.producer.reference_frames(3, stop)
+            got[attempt] = cam.producer.reference_frames(3, stop)
         finally:
             cam.stop()
-        assert len(got) == 3, attempt
-        for g, w in zip(got, want, strict=True):
-            assert np.array_equal(g.rgb, w.rgb) and np.array_equal(g.depth, w.depth), attempt
-            assert g.pressure_pa == w.pressure_pa and g.t == w.t, attempt
-            assert g.truth.pressure_pa == w.truth.pressure_pa, attempt
         path = reference_cache_path(cam.producer.sim, 3)
         assert path is not None
         deadline = time.monotonic() + 10
@@ -147,6 +144,16 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
             time.sleep(0.05)
         assert path.exists()
     assert cam.producer.frames_received == 0  # the second camera rendered nothing
+    # The cold cache: the renderer process computed the physics, with progress and its time.
+    assert "simulating the physics of scene" in caplog.text
+    assert "simulated in" in caplog.text
+    want = Simulator(str(scene)).reference_frames(3)
+    for attempt, frames in got.items():
+        assert len(frames) == 3, attempt
+        for g, w in zip(frames, want, strict=True):
+            assert np.array_equal(g.rgb, w.rgb) and np.array_equal(g.depth, w.depth), attempt
+            assert g.pressure_pa == w.pressure_pa and g.t == w.t, attempt
+            assert g.truth.pressure_pa == w.truth.pressure_pa, attempt
 
 
 def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_path, monkeypatch):

@@ -156,7 +156,7 @@ def child_main(argv: list[str] | None = None) -> int:
     try:
         sim = load_simulator_class(args.simulator)(args.scene, progress=progress)
         t0 = time.perf_counter()
-        if hasattr(sim, "run"):
+        if hasattr(type(sim), "run"):  # (on the instance, hasattr would run the physics)
             cold = not _physics_cached(sim)
             _ = sim.run  # the physics: from the cache, or computed (and cached) now
             write_message(out, "physics", seconds=time.perf_counter() - t0, cold=cold)
