@@ -197,8 +197,8 @@ class Daemon:
         """Replay of this project's MCAP (camera.replay_settings = "recorded"): estimate with
         what the live run used (estimator, flow, solver and reference settings, calibration,
         the fitted mesh), so the replay reproduces the live forces."""
-        text = getattr(cam, "recorded_settings", "")
-        mesh_msg = getattr(cam, "recorded_mesh", None)
+        text = cam.recorded_settings
+        mesh_msg = cam.recorded_mesh
         if text:
             import tomllib
 
@@ -402,7 +402,7 @@ class Daemon:
         """Write the sensor profile's ambient pressure into the configuration (unless it gives
         one), so that status, recordings and replays carry the value in use."""
         est = self.config.estimator
-        prof = est.sensor_profile(getattr(cam, "layout", "sim"))
+        prof = est.sensor_profile(cam.layout)
         if not est.ambient_pa:
             log.info("sensor profile %s: ambient pressure %.0f Pa", prof.name, prof.ambient_pa)
             est = replace(est, ambient_pa=prof.ambient_pa)

@@ -160,6 +160,8 @@ def child_main(argv: list[str] | None = None) -> int:
             cold = not _physics_cached(sim)
             _ = sim.run  # the physics: from the cache, or computed (and cached) now
             write_message(out, "physics", seconds=time.perf_counter() - t0, cold=cold)
+    except OSError:  # BrokenPipeError: the daemon went away (e.g. it failed to start)
+        return _parent_gone()
     except Exception as exc:
         write_message(out, "error", text=f"{type(exc).__name__}: {exc}")
         return 1
@@ -203,11 +205,21 @@ def child_main(argv: list[str] | None = None) -> int:
                     continue
                 fields, arrays = frame_message(f)
                 write_message(out, "frame", arrays, **fields)
-    except (BrokenPipeError, OSError):
-        return 0  # the daemon went away
+    except OSError:  # BrokenPipeError: the daemon went away
+        return _parent_gone()
     except Exception as exc:
         write_message(out, "error", text=f"{type(exc).__name__}: {exc}")
         return 1
+
+
+def _parent_gone() -> int:
+    """The daemon closed the pipe: end quietly (stdout pointed at /dev/null, so that the
+    interpreter's final flush does not print a broken-pipe traceback)."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 0
 
 
 def _mask_jobs(sim: Any, spec: dict[str, Any]) -> list[tuple[int, Any, int]]:

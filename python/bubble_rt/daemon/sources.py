@@ -233,6 +233,13 @@ class CameraSource(ThreadedSource):
 
     name = "camera"
     camera: Camera
+    #: The data's layout ("sim", "punyo", "rosbag", "realsense", ...): with the configuration's
+    #: ``profile = "auto"`` it picks the sensor profile (bubble_rt.sensor.profile_for_layout).
+    layout: str = "sim"
+    #: A replay of this project's recording (``recorded``): the live run's configuration TOML
+    #: and fitted mesh, which the daemon then uses; empty / None for every other source.
+    recorded_settings: str = ""
+    recorded_mesh: Any = None
 
     def __init__(self, lossless: bool = False) -> None:
         super().__init__()
@@ -374,14 +381,97 @@ class IterableCamera(CameraSource):
         return None if self.loop else False
 
 
-class SimCameraSource(IterableCamera):
-    """An :class:`IterableCamera` whose frames a :class:`~bubble_rt.daemon.sim_producer.
-    SimProducer` renders in its own process; ``stop`` ends that process too."""
+class SimCamera(IterableCamera):
+    """The simulator (``bubble_rt.sim``) on a scene, looped, paced at the scene's camera rate.
 
+    The frames are rendered in a separate process (:mod:`bubble_rt.daemon.sim_producer`), so
+    the simulated camera takes no time from the estimation threads, like a real camera; they
+    carry the simulator's ground truth (``Frame.truth``). Frame indices keep counting across
+    loops (``index = pass * scene.frames + i``), so frame ``k`` shows scene frame
+    ``k % scene.frames``. With ``prerender`` the first pass is kept in memory and later passes
+    replay it (the renderer process is then idle); it is also stored in the disk cache
+    (``sim_producer.pass_cache_path``, keyed by the scene and the simulator's code), and later
+    runs replay it from there from their first frame, rendering nothing. ``simulator``: the
+    simulator class as ``module:attribute`` (default ``bubble_rt.sim:Simulator``; tests name a
+    fake). ``stop`` ends the renderer process too.
+    """
+
+    #: The renderer process (``sim_producer.SimProducer``).
     producer: Any
-
     #: One rendered pass read from the disk cache (then nothing is rendered), or None.
     cached_pass: list[Any] | None = None
+
+    def __init__(
+        self,
+        scene: str = "demo",
+        rate_hz: float | None = None,
+        loop: bool = True,
+        lossless: bool = False,
+        prerender: bool = True,
+        simulator: str | None = None,
+    ) -> None:
+        from bubble_rt.daemon import sim_producer as sp
+
+        path = simulator or sp.DEFAULT_SIMULATOR
+        try:
+            sim = sp.load_simulator_class(path)(scene)  # the scene and camera; no physics yet
+        except Exception as exc:
+            raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
+        self._n_frames = int(sim.scene.frames)
+        self.producer = sp.SimProducer(
+            scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
+        )
+        # With prerender, a pass rendered by an earlier run is read from the disk cache.
+        self._pass_path = sp.pass_cache_path(sim) if prerender else None
+        self.cached_pass = None if self._pass_path is None else sp.load_pass(self._pass_path)
+        self._prerender = prerender
+        self._pass_frames: list[Frame] = []
+        self._passes = 0
+        self._complete = False
+        hz = rate_hz or float(sim.scene.rates.camera_hz)
+        super().__init__(
+            self._frames_of_next_pass,
+            sim.camera,
+            rate_hz=None if lossless else hz,
+            loop=loop,
+            lossless=lossless,
+            reference=lambda n: self.producer.reference_frames(n, self._stop),
+            keep_index=True,
+        )
+        # Paced by the estimator (every frame processed): a frame waits for its true contact.
+        self.producer.wait_for_truth = lossless
+        self.name = f"sim:{scene}"
+        self.stats.name = self.name
+
+    def _frames_of_next_pass(self) -> Iterator[Frame]:
+        """One pass over the scene: from the disk cache, the pass kept in memory, or the
+        renderer (kept, and stored to disk once complete, with ``prerender``)."""
+        from bubble_rt.daemon import sim_producer as sp
+
+        offset = self._passes * self._n_frames
+        self._passes += 1
+        if self.cached_pass is not None:
+            for fields, arrays in self.cached_pass:
+                f = self.producer.frame_of(fields, arrays)
+                yield replace(f, index=f.index + offset)
+            return
+        if self._complete:
+            for f in self._pass_frames:
+                yield replace(f, index=f.index + offset)
+            return
+        self._pass_frames.clear()
+        for f in self.producer.frames(self._stop):
+            if self._prerender:
+                self._pass_frames.append(f)
+            yield replace(f, index=f.index + offset)
+        self._complete = self._prerender
+        if self._prerender and self._pass_path is not None:  # the next runs read it from disk
+            threading.Thread(
+                target=sp.store_pass,
+                args=(self._pass_path, list(self._pass_frames)),
+                name="sim-pass-cache",
+                daemon=True,
+            ).start()
 
     def prepare(self) -> None:
         """Start the renderer process now, so it loads while the daemon sets up (with a cached
@@ -395,93 +485,6 @@ class SimCameraSource(IterableCamera):
     def stop(self, timeout: float = 1.0) -> None:
         super().stop(timeout)
         self.producer.stop(timeout)
-
-
-def SimCamera(
-    scene: str = "demo",
-    rate_hz: float | None = None,
-    loop: bool = True,
-    lossless: bool = False,
-    prerender: bool = True,
-    simulator: str | None = None,
-) -> SimCameraSource:
-    """The simulator (``bubble_rt.sim``) on a scene, looped, paced at the scene's camera rate.
-
-    The frames are rendered in a separate process (:mod:`bubble_rt.daemon.sim_producer`), so
-    the simulated camera takes no time from the estimation threads, like a real camera; they
-    carry the simulator's ground truth (``Frame.truth``). Frame indices keep counting across
-    loops (``index = pass * scene.frames + i``), so frame ``k`` shows scene frame
-    ``k % scene.frames``. With ``prerender`` the first pass is kept in memory and later passes
-    replay it (the renderer process is then idle); it is also stored in the disk cache
-    (``sim_producer.pass_cache_path``, keyed by the scene and the simulator's code), and later
-    runs replay it from there from their first frame, rendering nothing. ``simulator``: the simulator class as
-    ``module:attribute`` (default ``bubble_rt.sim:Simulator``; tests name a fake).
-    """
-    from bubble_rt.daemon import sim_producer as sp
-
-    path = simulator or sp.DEFAULT_SIMULATOR
-    try:
-        sim = sp.load_simulator_class(path)(scene)  # the scene and camera; no physics yet
-    except Exception as exc:
-        raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
-    n_frames = int(sim.scene.frames)
-    producer = sp.SimProducer(
-        scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
-    )
-    # With prerender, a pass rendered by an earlier run is read from the disk cache.
-    pass_path = sp.pass_cache_path(sim) if prerender else None
-    stored = None if pass_path is None else sp.load_pass(pass_path)
-    cache: list[Frame] = []
-    state = {"pass": 0, "complete": False}
-    src: SimCameraSource
-
-    def frames() -> Iterator[Frame]:
-        k = state["pass"]
-        state["pass"] += 1
-        offset = k * n_frames
-        if stored is not None:
-            for fields, arrays in stored:
-                f = producer.frame_of(fields, arrays)
-                yield replace(f, index=f.index + offset)
-            return
-        if state["complete"]:
-            for f in cache:
-                yield replace(f, index=f.index + offset)
-            return
-        cache.clear()
-        for f in producer.frames(src._stop):
-            if prerender:
-                cache.append(f)
-            yield replace(f, index=f.index + offset)
-        state["complete"] = prerender
-        if prerender and pass_path is not None:  # the next runs read it from disk
-            threading.Thread(
-                target=sp.store_pass,
-                args=(pass_path, list(cache)),
-                name="sim-pass-cache",
-                daemon=True,
-            ).start()
-
-    def reference(n: int) -> list[Frame] | None:
-        return producer.reference_frames(n, src._stop)
-
-    hz = rate_hz or float(sim.scene.rates.camera_hz)
-    src = SimCameraSource(
-        frames,
-        sim.camera,
-        rate_hz=None if lossless else hz,
-        loop=loop,
-        lossless=lossless,
-        reference=reference,
-        keep_index=True,
-    )
-    src.producer = producer
-    src.cached_pass = stored
-    # Paced by the estimator (every frame processed): a frame waits for its true contact.
-    producer.wait_for_truth = lossless
-    src.name = f"sim:{scene}"
-    src.stats.name = src.name
-    return src
 
 
 def restamp_reference(frames: list[Frame]) -> list[Frame]:
@@ -501,13 +504,7 @@ def restamp_reference(frames: list[Frame]) -> list[Frame]:
     return out
 
 
-def ReplayCamera(
-    path: str,
-    realtime: bool = True,
-    loop: bool = False,
-    recorded: bool = False,
-    **bag_options: Any,
-) -> IterableCamera:
+class ReplayCamera(IterableCamera):
     """A recording: this project's MCAP files, the punyo layout or a ROS 2 bag
     (``recordings``; ``bag_options`` go to the bag reader). Paced by the frames' timestamps.
 
@@ -522,14 +519,79 @@ def ReplayCamera(
     depended on: only the frames it published forces for, and ``recorded_settings`` (the
     daemon's configuration TOML) and ``recorded_mesh`` (the fitted mesh) for the daemon to use.
     """
+
+    #: What a damaged MCAP file lost (``bubble_rt.io.mcap_scan.ReadReport``), else None.
+    recording_report: Any = None
+
+    def __init__(
+        self,
+        path: str,
+        realtime: bool = True,
+        loop: bool = False,
+        recorded: bool = False,
+        **bag_options: Any,
+    ) -> None:
+        from pathlib import Path
+
+        p = Path(path)
+        rec, reference, report = _open_replay(p, bag_options)
+        published: set[int] = getattr(rec, "published", set()) if recorded else set()
+
+        def frames() -> Iterator[Any]:
+            # Every layout names the frames it skips (FrameFault); a bag also the pressure
+            # readings it skipped, once per pass.
+            yield from getattr(rec, "reading_faults", [])
+            out = rec.frames(faults=True)
+            if published:  # the frames the live run solved, as it solved them
+                out = (f for f in out if not isinstance(f, Frame) or f.index in published)
+            yield from out
+
+        super().__init__(
+            frames,
+            rec.camera,
+            rate_hz=30.0 if realtime else None,
+            loop=loop,
+            lossless=not realtime,
+            by_timestamps=True,
+            reference=reference,
+            keep_index=not loop,
+        )
+        self.name = f"replay:{p.name}"
+        self.stats.name = self.name
+        self.restart_on_error = False
+        # Frames are checked against the recording's camera when the file states it.
+        self.camera_check = getattr(rec, "has_camera_info", True)
+        self.layout = getattr(rec, "layout", "sim")
+        self.recording_report = report
+        if recorded:
+            self.recorded_settings = getattr(rec, "settings_toml", "")
+            self.recorded_mesh = getattr(rec, "mesh", None)
+        self._report_losses(rec, report)
+
+    def _report_losses(self, rec: Any, report: Any) -> None:
+        """What a cut or damaged recording lost, in the source's status and the log."""
+        if getattr(rec, "lost", ""):  # a cut or damaged bag
+            self.stats.error("recording", rec.lost)
+            log.warning("replay: %s", rec.lost)
+        if report is not None and not report.complete:
+            text = report.summary()
+            if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:
+                text += f"; {len(rec)} of {rec.frames_indexed} frames readable"
+            self.stats.error("recording", text)
+            log.warning("replay: %s", text)
+
+
+def _open_replay(
+    p: Any, bag_options: dict[str, Any]
+) -> tuple[Any, Callable[[int], list[Frame] | None] | None, Any]:
+    """The recording at ``p``, its reference frames (an MCAP file that has them) and its read
+    report (MCAP); SourceError when it cannot be read or holds no frame to replay."""
     import warnings
-    from pathlib import Path
 
     from bubble_rt.io.rosbag import is_rosbag
 
-    p = Path(path)
     if not p.exists():
-        raise SourceError(f"replay: no such recording {path!r}")
+        raise SourceError(f"replay: no such recording {str(p)!r}")
     reference: Callable[[int], list[Frame] | None] | None = None
     report: Any = None
     try:
@@ -547,53 +609,13 @@ def ReplayCamera(
 
             rec = open_recording(p, **bag_options)
     except Exception as exc:
-        raise SourceError(f"replay: cannot read {path}: {exc}") from exc
+        raise SourceError(f"replay: cannot read {p}: {exc}") from exc
     if len(rec) == 0:  # e.g. an MCAP file cut after its reference frames: nothing to replay
         lost = f" ({report.summary()})" if report is not None else ""
-        raise SourceError(f"replay: {path}: no frame to replay after the reference{lost}")
+        raise SourceError(f"replay: {p}: no frame to replay after the reference{lost}")
     if getattr(rec, "topics_note", ""):
         log.info("replay: %s", rec.topics_note)
-
-    published: set[int] = getattr(rec, "published", set()) if recorded else set()
-
-    def frames() -> Iterator[Any]:
-        # Every layout names the frames it skips (FrameFault); a bag also the pressure
-        # readings it skipped, once per pass.
-        yield from getattr(rec, "reading_faults", [])
-        out = rec.frames(faults=True)
-        if published:  # the frames the live run solved, as it solved them
-            out = (f for f in out if not isinstance(f, Frame) or f.index in published)
-        yield from out
-
-    src = IterableCamera(
-        frames,
-        rec.camera,
-        rate_hz=30.0 if realtime else None,
-        loop=loop,
-        lossless=not realtime,
-        by_timestamps=True,
-        reference=reference,
-        keep_index=not loop,
-    )
-    src.name = f"replay:{p.name}"
-    src.stats.name = src.name
-    src.restart_on_error = False
-    # Frames are checked against the recording's camera when the file states it.
-    src.camera_check = getattr(rec, "has_camera_info", True)
-    src.layout = getattr(rec, "layout", "sim")  # type: ignore[attr-defined]
-    src.recording_report = report  # type: ignore[attr-defined]
-    src.recorded_settings = getattr(rec, "settings_toml", "") if recorded else ""  # type: ignore[attr-defined]
-    src.recorded_mesh = getattr(rec, "mesh", None) if recorded else None  # type: ignore[attr-defined]
-    if getattr(rec, "lost", ""):  # a cut or damaged bag: what was lost
-        src.stats.error("recording", rec.lost)
-        log.warning("replay: %s", rec.lost)
-    if report is not None and not report.complete:
-        text = report.summary()
-        if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:
-            text += f"; {len(rec)} of {rec.frames_indexed} frames readable"
-        src.stats.error("recording", text)
-        log.warning("replay: %s", text)
-    return src
+    return rec, reference, report
 
 
 class RealSenseCamera(CameraSource):
