@@ -79,6 +79,11 @@ class EstimatorProcessor:
     def reconfigure(self, params: dict[str, float]) -> None:
         self.pipeline.reconfigure(params)
 
+    def follow_reference(self, reference: Any) -> bool:
+        """Re-zero: track against ``reference`` (a ``Reference``) from the next frame on;
+        False when the estimator kind cannot (``bubble_rt.daemon.rezero``)."""
+        return self.pipeline.follow_reference(reference)
+
 
 class PatchFinder:
     """Contact patches: connected components of the contact mask over mesh edges."""

@@ -32,7 +32,7 @@ import zmq
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig, EstimatorSection
-from bubble_rt.daemon import control, faults, health
+from bubble_rt.daemon import control, faults, health, rezero
 from bubble_rt.daemon.processor import (
     EstimatorProcessor,
     PatchFinder,
@@ -51,7 +51,7 @@ from bubble_rt.daemon.sources import (
 )
 from bubble_rt.frames import Frame
 from bubble_rt.io import protocol
-from bubble_rt.io.mcap import TOPIC_MESH
+from bubble_rt.io.mcap import TOPIC_MESH, TOPIC_REZERO
 
 #: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
 #: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
@@ -138,6 +138,13 @@ class Daemon:
         self._started_at = 0.0
         self._last_state: tuple[int, str] | None = None
         self.ctx: zmq.Context | None = None
+        #: Re-zeroing (bubble_rt.daemon.rezero): the decisions, the followed reference, and
+        #: for a replay of this project's recording the live run's steps instead.
+        self.autozero = rezero.AutoZero(self.config.auto_zero)
+        self._follower: rezero.ReferenceFollower | None = None
+        self._recorded_rezero: rezero.RecordedRezero | None = None
+        self.rezero_count = 0
+        self.last_rezero_ns = 0
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
@@ -151,6 +158,13 @@ class Daemon:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
         self._use_recorded_settings(cam)
+        steps = getattr(cam, "recorded_rezero", None)
+        if steps is not None:
+            # A replay applies the live run's re-zero steps, at the same frames, and no other.
+            self._recorded_rezero = rezero.RecordedRezero(
+                [rezero.step_from_message(m) for m in steps]
+            )
+            self.autozero.enabled = False
         self._resolve_profile(cam)
         cfg = self.config
         if self._pressure_arg is None:
@@ -376,6 +390,7 @@ class Daemon:
                     frames, self._collecting = self._collecting, []
                     self._install_reference(frames)
                 continue
+            self._rezero_before(frame)
             cold = False
             recorder = self.recorder
             if recorder is not None:
@@ -429,12 +444,66 @@ class Daemon:
                 with self._proc_lock:
                     self.processor.set_reference(frames)
             self._ref_frames = frames
+            ref = getattr(self.processor, "reference", None)
+            self._follower = rezero.ReferenceFollower(ref) if hasattr(ref, "pressure_pa") else None
+            self.autozero.reset(frames[-1].t)
             if self.recorder is not None:
                 self.recorder.write_reference(frames)
         except Exception as exc:
             self._error("reference", exc)
         finally:
             self._tare_requested = False
+
+    def _rezero_before(self, frame: Frame) -> None:
+        """Stage one, before tracking ``frame``: apply a re-zero step that is due (decided by
+        stage two from untouched frames, or read from the replayed recording)."""
+        if self._follower is None or not hasattr(self.processor, "follow_reference"):
+            return
+        if self._recorded_rezero is not None:
+            for step, frames in self._recorded_rezero.before(frame):
+                self._apply_rezero(frames, step.weight, frame)
+            return
+        due = self.autozero.take_due()
+        if due:
+            self._apply_rezero(due, self.autozero.weight, frame)
+
+    def _apply_rezero(self, frames: list[Frame], weight: float, frame: Frame) -> None:
+        follower = self._follower
+        assert follower is not None
+        try:
+            ref = follower.step(frames, weight)
+            ok = bool(self.processor.follow_reference(ref))  # type: ignore[union-attr]
+        except Exception as exc:
+            self._error("rezero", exc)
+            return
+        if not ok:
+            self._error("rezero", "this estimator kind cannot follow a reference; turned off")
+            self.autozero.enabled = False
+            return
+        step = rezero.RezeroStep(
+            first_frame_index=frame.index,
+            weight=weight,
+            frame_indices=tuple(f.index for f in frames),
+            reference_pressure_pa=follower.pressure_pa,
+            drift_pa=follower.drift_pa,
+            time_ns=int(round(frame.t * 1e9)),
+        )
+        self.rezero_count += 1
+        self.last_rezero_ns = step.time_ns
+        rec = self.recorder
+        if rec is not None:
+            rec.write_message(TOPIC_REZERO, rezero.step_message(step), frame.t, frame.index)
+
+    def set_auto_zero(self, enabled: bool) -> None:
+        """Turn re-zeroing on or off (control request ``set_auto_zero``); turning it on starts
+        a fresh hold-off."""
+        self.autozero.set_enabled(enabled, time.time())
+
+    @property
+    def drift_pa(self) -> float:
+        """The pressure drift the reference has followed since the last tare (Pa)."""
+        f = self._follower
+        return f.drift_pa if f is not None else 0.0
 
     def request_tare(self) -> None:
         """Capture a new reference from the next untouched frames."""
@@ -489,6 +558,10 @@ class Daemon:
             ):
                 if problem:
                     reasons.append(problem)
+            self.autozero.observe(
+                item.frame,
+                rezero.untouched(contact, est.net_force, reasons),
+            )
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
             if dp is None:

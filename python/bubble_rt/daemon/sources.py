@@ -520,6 +520,8 @@ def ReplayCamera(
     src.recording_report = report  # type: ignore[attr-defined]
     src.recorded_settings = getattr(rec, "settings_toml", "") if recorded else ""  # type: ignore[attr-defined]
     src.recorded_mesh = getattr(rec, "mesh", None) if recorded else None  # type: ignore[attr-defined]
+    # The live run's re-zero steps (bubble_rt.daemon.rezero), applied instead of deciding.
+    src.recorded_rezero = list(getattr(rec, "rezero", [])) if recorded else None  # type: ignore[attr-defined]
     if report is not None and not report.complete:
         text = report.summary()
         if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:

@@ -160,6 +160,16 @@ class Pipeline:
         self.estimator = self._build_estimator()
         self._build_tracker()
 
+    def follow_reference(self, reference: Reference) -> bool:
+        """Measure displacements and dp against ``reference`` from the next frame on (the
+        daemon's re-zeroing: a few ms); the estimator stays linearised about the reference of
+        the last ``set_reference``. False (nothing changed) for kinds that read frames
+        themselves."""
+        if not self.kind.tracked:
+            return False
+        self.tracker = make_tracker(self.mesh, self.camera, reference, self.flow)
+        return True
+
     @property
     def params(self) -> tuple[str, ...]:
         """The ``[estimator]`` keys ``reconfigure`` accepts for this kind."""
