@@ -60,7 +60,7 @@ def test_no_step_uses_a_frame_near_a_touch_over_minutes_of_contact():
     az = AutoZero(sec)
     az.reset(0.0)
     touched_t: list[float] = []
-    steps: list[tuple[float, list[Frame]]] = []
+    steps: list[tuple[float, list[Any]]] = []
     for i in range(int(300 * 15)):
         t = i / 15.0
         pressed = 20.0 <= t < 260.0
@@ -74,32 +74,35 @@ def test_no_step_uses_a_frame_near_a_touch_over_minutes_of_contact():
     assert steps, "no re-zero at all"
     during = [t for t, _ in steps if 20.0 <= t < 262.0]
     assert during == []
-    for _, frames in steps:
-        for f in frames:
+    for _, evidence in steps:
+        for f, _ in evidence:
             assert np.min(np.abs(touched - f.t)) >= sec.holdoff_s
     assert sum(1 for t, _ in steps if t < 20.0) >= 10
     assert sum(1 for t, _ in steps if t >= 262.0) >= 30
 
 
-def test_follower_blends_in_float_so_a_slow_drift_is_not_rounded_away():
-    ref = SimpleNamespace(
-        rgb=np.full((H, W, 3), 100, np.uint8),
-        depth=np.where(np.arange(W) < 4, 0.0, 0.07).astype(np.float32)
-        * np.ones((H, 1), np.float32),
-        pressure_pa=P0,
-    )
+def test_follower_follows_pressure_node_positions_and_illumination_in_float():
+    rng = np.random.default_rng(0)
+    tare_rgb = np.clip(100 + 30 * rng.standard_normal((H, W, 3)), 0, 255).astype(np.uint8)
+    ref = SimpleNamespace(rgb=tare_rgb, depth=None, pressure_pa=P0)
     fol = ReferenceFollower(ref)
-    bright = replace(make_frame(0), rgb=np.full((H, W, 3), 102, np.uint8), pressure_pa=P0 + 100.0)
-    bright = replace(bright, depth=np.full((H, W), 0.071, np.float32))
-    out = None
-    for _ in range(40):  # weight 0.05: one step moves 0.1 level, under the rounding
-        out = fol.step([bright], 0.05)
-    assert out is not None
-    assert int(out.rgb[0, 0, 0]) == 102 - round(2 * 0.95**40)
-    assert fol.drift_pa == pytest.approx(100.0 * (1 - 0.95**40))
-    # The tare's holes stay holes; the rest moved towards the new depth.
-    assert (out.depth[:, :4] == 0).all()
-    assert out.depth[0, 10] == pytest.approx(0.07 + 0.001 * (1 - 0.95**40), abs=1e-6)
+    # The LEDs dimmed 5 % and gained 3 levels; the gas pushed the membrane out 0.1 mm.
+    dim = np.clip(np.rint(0.95 * tare_rgb.astype(np.float64) + 3.0), 0, 255).astype(np.uint8)
+    seen = replace(make_frame(0), rgb=dim, pressure_pa=P0 + 100.0)
+    u = np.zeros((7, 3))
+    u[:, 2] = 1e-4
+    out, offset = None, None
+    for _ in range(40):  # weight 0.05: one step moves a pixel by 0.1 level, under the rounding
+        out, offset = fol.step([(seen, u)], 0.05)
+    assert out is not None and offset is not None
+    k = 1 - 0.95**40
+    assert fol.drift_pa == pytest.approx(100.0 * k)
+    assert out.pressure_pa == pytest.approx(P0 + 100.0 * k)
+    np.testing.assert_allclose(offset[:, 2], 1e-4 * k)
+    assert fol.gain == pytest.approx(1 - 0.05 * k, abs=2e-3)
+    assert fol.bias == pytest.approx(3.0 * k, abs=0.3)
+    expect = np.rint(fol.gain * tare_rgb.astype(np.float32) + fol.bias)
+    np.testing.assert_array_equal(out.rgb, np.clip(expect, 0, 255).astype(np.uint8))
 
 
 # ---------------------------------------------------------------------- in the daemon
@@ -122,7 +125,7 @@ class DriftProcessor(FakeProcessor):
             est.contact[:] = False
         return est
 
-    def follow_reference(self, reference: Any) -> bool:
+    def follow_reference(self, reference: Any, offset: Any = None) -> bool:
         self.ref_p = float(reference.pressure_pa)
         return True
 

@@ -17,8 +17,10 @@ The steps are discrete so a recording can carry them (:class:`RezeroStep`, MCAP 
 ``/bubble_rt/rezero``) and a replay apply the same ones at the same frames instead of
 deciding itself: the replay reproduces the live forces.
 
-Only the deformation tracker's reference moves (a few ms); the estimator stays linearised
-about the last tare's pressure (rebuilding it takes about 0.4 s).
+What follows is what the tracker measures against (:class:`ReferenceFollower`): the pressure,
+the node positions and the flow's reference image (its brightness and gain). A step takes a
+few ms; the mesh and the estimator stay those of the last tare (the estimator is linearised
+about its pressure: rebuilding it takes about 0.4 s).
 """
 
 from __future__ import annotations
@@ -65,42 +67,69 @@ class RezeroStep:
     time_ns: int = 0
 
 
+#: One piece of evidence: an untouched frame and its node displacements from the tare's mesh
+#: (N x 3, m; None when the processor gives none).
+Evidence = tuple[Frame, NDArray[np.float64] | None]
+
+
 class ReferenceFollower:
-    """The followed reference in floating point (8-bit images would round away a slow drift:
-    a step of weight w cannot move a pixel by less than 0.5 / w levels)."""
+    """The followed reference, in floating point (an 8-bit image or a rounded step would stall
+    a slow drift: a step of weight w cannot move a value by less than its rounding / w).
+
+    What the tracker measures against, and so what follows: the pressure (dp), the node
+    positions (a warmer gas bulges the membrane: the mean displacement of the untouched frames
+    from the tare's mesh, ``offset``) and the flow's reference image, as the tare's image under
+    the current illumination (a gain and an offset matched to the untouched frames' mean and
+    spread: the LEDs' drift, without moving the texture, which the offset accounts for).
+    """
 
     def __init__(self, reference: Any) -> None:
-        rgb, depth = getattr(reference, "rgb", None), getattr(reference, "depth", None)
-        self.rgb = None if rgb is None else np.asarray(rgb, np.float32)
-        self.depth = None if depth is None else np.array(depth, np.float32)
+        self.tare = reference
+        rgb = getattr(reference, "rgb", None)
+        self._tare_rgb = None if rgb is None else np.asarray(rgb, np.float32)
+        self.gain = 1.0
+        self.bias = 0.0
         self.pressure_pa = float(reference.pressure_pa)
         self.tare_pressure_pa = self.pressure_pa
+        self.offset: NDArray[np.float64] | None = None
 
-    def step(self, frames: list[Frame], weight: float) -> Any:
-        """Blend the mean of ``frames`` in with ``weight``; the new ``Reference``."""
+    def step(self, evidence: list[Evidence], weight: float) -> tuple[Any, Any]:
+        """Blend the evidence in with ``weight``; (the new ``Reference``, node offset)."""
         from bubble_rt.estimation.deformation import Reference
 
-        mean = Reference.capture(frames)
-        w = np.float32(weight)
-        if self.rgb is not None and mean.rgb is not None and mean.rgb.shape == self.rgb.shape:
-            self.rgb += w * (mean.rgb.astype(np.float32) - self.rgb)
-        if (
-            self.depth is not None
-            and mean.depth is not None
-            and mean.depth.shape == self.depth.shape
-        ):
-            # Only pixels valid in both move: the tare's holes stay holes (a pixel at a hole's
-            # edge reads a mixed, millimetres-off depth now and then, never to be adopted), and
-            # one the new frames miss keeps its value.
-            both = (mean.depth > 0) & (self.depth > 0)
-            self.depth[both] += w * (mean.depth[both] - self.depth[both])
-        if math.isfinite(mean.pressure_pa):
-            self.pressure_pa += float(weight) * (mean.pressure_pa - self.pressure_pa)
-        rgb = None if self.rgb is None else np.clip(np.rint(self.rgb), 0, 255).astype(np.uint8)
-        depth = None if self.depth is None else self.depth.copy()
-        return Reference(
-            rgb=rgb, depth=depth, pressure_pa=self.pressure_pa, t=mean.t, n_frames=len(frames)
+        w = float(weight)
+        frames = [f for f, _ in evidence]
+        p = float(np.mean([f.pressure_pa for f in frames]))
+        if math.isfinite(p):
+            self.pressure_pa += w * (p - self.pressure_pa)
+        us = [u for _, u in evidence if u is not None]
+        if us:
+            mean_u = np.mean(np.stack(us), axis=0)
+            if np.isfinite(mean_u).all():
+                base = self.offset if self.offset is not None else np.zeros_like(mean_u)
+                self.offset = base + w * (mean_u - base)
+        rgb = None
+        tare = self._tare_rgb
+        if tare is not None:
+            imgs = [f.rgb for f in frames if f.rgb is not None and f.rgb.shape == tare.shape]
+            if imgs:
+                mean = np.mean([np.asarray(i[::4, ::4], np.float32) for i in imgs], axis=0)
+                x = tare[::4, ::4]
+                sx = float(x.std())
+                if sx > 1e-3:
+                    gain = float(mean.std()) / sx
+                    bias = float(mean.mean()) - gain * float(x.mean())
+                    self.gain += w * (gain - self.gain)
+                    self.bias += w * (bias - self.bias)
+            rgb = np.clip(np.rint(self.gain * tare + self.bias), 0, 255).astype(np.uint8)
+        ref = Reference(
+            rgb=rgb,
+            depth=getattr(self.tare, "depth", None),
+            pressure_pa=self.pressure_pa,
+            t=frames[-1].t,
+            n_frames=len(frames),
         )
+        return ref, None if self.offset is None else self.offset.copy()
 
     @property
     def drift_pa(self) -> float:
@@ -118,11 +147,11 @@ class AutoZero:
         self.section = section
         self.enabled = section.enabled
         self._lock = threading.Lock()
-        self._candidates: deque[Frame] = deque()
-        self._evidence: list[Frame] = []
+        self._candidates: deque[Evidence] = deque()
+        self._evidence: list[Evidence] = []
         self._last_touch = -math.inf
         self._last_step_t = -math.inf
-        self._due: list[Frame] | None = None
+        self._due: list[Evidence] | None = None
 
     @property
     def weight(self) -> float:
@@ -139,8 +168,9 @@ class AutoZero:
             self._last_touch = t
             self._last_step_t = t
 
-    def observe(self, frame: Frame, is_untouched: bool) -> None:
-        """One estimated frame (stage two, in frame order)."""
+    def observe(self, frame: Frame, is_untouched: bool, displacements: Any = None) -> None:
+        """One estimated frame (stage two, in frame order); ``displacements``: its nodes'
+        displacements from the tare's mesh (N x 3, m) when the processor measures them."""
         s = self.section
         t = frame.t
         with self._lock:
@@ -152,19 +182,19 @@ class AutoZero:
                 self._evidence = []
                 return
             spacing = s.interval_s / CANDIDATES_PER_INTERVAL
-            last = self._candidates[-1].t if self._candidates else -math.inf
+            last = self._candidates[-1][0].t if self._candidates else -math.inf
             if t - last >= spacing and t - self._last_touch >= s.holdoff_s:
-                self._candidates.append(frame)
+                self._candidates.append((frame, displacements))
             # A candidate becomes evidence once holdoff_s has passed after it untouched.
-            while self._candidates and t - self._candidates[0].t >= s.holdoff_s:
+            while self._candidates and t - self._candidates[0][0].t >= s.holdoff_s:
                 self._evidence.append(self._candidates.popleft())
                 del self._evidence[:-CANDIDATES_PER_INTERVAL]
             if self._evidence and t - self._last_step_t >= s.interval_s and self._due is None:
                 self._due, self._evidence = self._evidence, []
                 self._last_step_t = t
 
-    def take_due(self) -> list[Frame] | None:
-        """The evidence frames of a step due now (None: none), once."""
+    def take_due(self) -> list[Evidence] | None:
+        """The evidence of a step due now (None: none), once."""
         with self._lock:
             due, self._due = self._due, None
             return due if self.enabled else None
@@ -177,25 +207,28 @@ class AutoZero:
 
 
 class RecordedRezero:
-    """A replay's re-zero steps, taken from the recording instead of decided: keeps the frames
-    the steps name and hands each step out before its first frame."""
+    """A replay's re-zero steps, taken from the recording instead of decided: keeps the
+    evidence (frame, displacements) of the frames the steps name and hands each step out
+    before its first frame."""
 
     def __init__(self, steps: list[RezeroStep]) -> None:
         self.steps = deque(sorted(steps, key=lambda s: s.first_frame_index))
         self._needed = {i for s in steps for i in s.frame_indices}
-        self._frames: dict[int, Frame] = {}
+        self._kept: dict[int, Evidence] = {}
 
-    def before(self, frame: Frame) -> list[tuple[RezeroStep, list[Frame]]]:
-        """Steps to apply before tracking ``frame`` (with their frames); keeps ``frame`` if a
-        later step names it."""
+    def keep(self, frame: Frame, displacements: Any) -> None:
+        """Stage one, after tracking ``frame``: keep it if a step names it."""
+        if frame.index in self._needed:
+            self._kept[frame.index] = (frame, displacements)
+
+    def before(self, frame: Frame) -> list[tuple[RezeroStep, list[Evidence]]]:
+        """Steps to apply before tracking ``frame``, with their evidence."""
         out = []
         while self.steps and self.steps[0].first_frame_index <= frame.index:
             step = self.steps.popleft()
-            frames = [self._frames.pop(i) for i in step.frame_indices if i in self._frames]
-            if frames:
-                out.append((step, frames))
-        if frame.index in self._needed:
-            self._frames[frame.index] = frame
+            ev = [self._kept.pop(i) for i in step.frame_indices if i in self._kept]
+            if ev:
+                out.append((step, ev))
         return out
 
 
@@ -228,6 +261,7 @@ __all__ = [
     "AutoZero",
     "RecordedRezero",
     "ReferenceFollower",
+    "Evidence",
     "RezeroStep",
     "step_from_message",
     "step_message",

@@ -71,6 +71,8 @@ class _Item:
     #: The recorder this frame's input was written to: only its forces go into that file, so
     #: a recording started mid-run holds no force whose input it lacks (replay reproduces it).
     recorder: Any = None
+    #: The frame's node displacements from the tare's mesh (N x 3, m; re-zeroing evidence).
+    displacements: Any = None
 
 
 #: A fault kind is logged at most once per this many seconds (with its count so far).
@@ -405,7 +407,10 @@ class Daemon:
                 self._error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
-            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder)
+            disp = self._tare_displacements(data)
+            if self._recorded_rezero is not None:
+                self._recorded_rezero.keep(frame, disp)
+            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder, disp)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
             else:
@@ -460,19 +465,29 @@ class Daemon:
         if self._follower is None or not hasattr(self.processor, "follow_reference"):
             return
         if self._recorded_rezero is not None:
-            for step, frames in self._recorded_rezero.before(frame):
-                self._apply_rezero(frames, step.weight, frame)
+            for step, evidence in self._recorded_rezero.before(frame):
+                self._apply_rezero(evidence, step.weight, frame)
             return
         due = self.autozero.take_due()
         if due:
             self._apply_rezero(due, self.autozero.weight, frame)
 
-    def _apply_rezero(self, frames: list[Frame], weight: float, frame: Frame) -> None:
+    def _tare_displacements(self, data: Any) -> Any:
+        """Stage one's node displacements measured from the tare's mesh (the tracker measures
+        them from the nodes moved by the followed offset): re-zeroing evidence."""
+        u = getattr(data, "U", None)
+        if u is None:
+            return None
+        off = self._follower.offset if self._follower is not None else None
+        return u + off if off is not None else u
+
+    def _apply_rezero(self, evidence: list[rezero.Evidence], weight: float, frame: Frame) -> None:
         follower = self._follower
         assert follower is not None
+        frames = [f for f, _ in evidence]
         try:
-            ref = follower.step(frames, weight)
-            ok = bool(self.processor.follow_reference(ref))  # type: ignore[union-attr]
+            ref, offset = follower.step(evidence, weight)
+            ok = bool(self.processor.follow_reference(ref, offset))  # type: ignore[union-attr]
         except Exception as exc:
             self._error("rezero", exc)
             return
@@ -561,6 +576,7 @@ class Daemon:
             self.autozero.observe(
                 item.frame,
                 rezero.untouched(contact, est.net_force, reasons),
+                item.displacements,
             )
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
