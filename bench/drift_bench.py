@@ -99,7 +99,7 @@ def run(auto_zero: bool, scene: str, timeout_s: float) -> dict[str, Any]:
                 break
             if len(col.rows) != n_seen:
                 n_seen, t_seen = len(col.rows), time.monotonic()
-            elif n_seen and time.monotonic() - t_seen > 5.0:  # the scene ended (last dropped)
+            elif n_seen and time.monotonic() - t_seen > 20.0:  # the scene ended (last dropped)
                 break
             time.sleep(0.2)
         time.sleep(0.5)

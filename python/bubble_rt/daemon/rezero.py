@@ -14,8 +14,9 @@ moments, nor the membrane relaxing after it, ever enters the reference: a press 
 hours is never zeroed away.
 
 The steps are discrete so a recording can carry them (:class:`RezeroStep`, MCAP topic
-``/bubble_rt/rezero``) and a replay apply the same ones at the same frames instead of
-deciding itself: the replay reproduces the live forces.
+``/bubble_rt/rezero``, with the state they set, and the state at the start of the recording)
+and a replay set the same states at the same frames instead of deciding itself: the replay
+reproduces the live forces, however the recording was started.
 
 What follows is what the tracker measures against (:class:`ReferenceFollower`): the pressure,
 the node positions and the flow's reference image (its brightness and gain). A step takes a
@@ -54,15 +55,19 @@ def untouched(contact: NDArray[np.bool_], net_force: Any, reasons: list[str]) ->
 
 @dataclass(frozen=True)
 class RezeroStep:
-    """One re-zero: from frame ``first_frame_index`` on the reference is ``(1 - weight)`` times
-    the previous one plus ``weight`` times the mean of frames ``frame_indices``.
-    ``reference_pressure_pa``: the new reference pressure (Pa); ``drift_pa``: its change since
-    the last tare (Pa); ``time_ns``: capture time of the first frame measured against it."""
+    """One re-zero: from frame ``first_frame_index`` on the daemon measures against the state
+    (``reference_pressure_pa``, ``gain``, ``bias``, ``offset``: see :class:`ReferenceFollower`),
+    blended with ``weight`` from the untouched frames ``frame_indices`` (weight 0, no frames:
+    the state when a recording starts). ``drift_pa``: the pressure's change since the last
+    tare (Pa); ``time_ns``: capture time of the first frame measured against it."""
 
     first_frame_index: int
     weight: float
     frame_indices: tuple[int, ...]
-    reference_pressure_pa: float = 0.0
+    reference_pressure_pa: float
+    gain: float
+    bias: float
+    offset: NDArray[np.float64] | None
     drift_pa: float = 0.0
     time_ns: int = 0
 
@@ -95,8 +100,6 @@ class ReferenceFollower:
 
     def step(self, evidence: list[Evidence], weight: float) -> tuple[Any, Any]:
         """Blend the evidence in with ``weight``; (the new ``Reference``, node offset)."""
-        from bubble_rt.estimation.deformation import Reference
-
         w = float(weight)
         frames = [f for f, _ in evidence]
         p = float(np.mean([f.pressure_pa for f in frames]))
@@ -108,7 +111,6 @@ class ReferenceFollower:
             if np.isfinite(mean_u).all():
                 base = self.offset if self.offset is not None else np.zeros_like(mean_u)
                 self.offset = base + w * (mean_u - base)
-        rgb = None
         tare = self._tare_rgb
         if tare is not None:
             imgs = [f.rgb for f in frames if f.rgb is not None and f.rgb.shape == tare.shape]
@@ -121,15 +123,49 @@ class ReferenceFollower:
                     bias = float(mean.mean()) - gain * float(x.mean())
                     self.gain += w * (gain - self.gain)
                     self.bias += w * (bias - self.bias)
-            rgb = np.clip(np.rint(self.gain * tare + self.bias), 0, 255).astype(np.uint8)
-        ref = Reference(
+        return self.reference(), self.offset_copy()
+
+    def reference(self) -> Any:
+        """The ``Reference`` of the current state (the tare's depth: the tracker reads node
+        positions from the depth of each frame, not from the reference's)."""
+        from bubble_rt.estimation.deformation import Reference
+
+        rgb = None
+        if self._tare_rgb is not None:
+            rgb = np.clip(np.rint(self.gain * self._tare_rgb + self.bias), 0, 255)
+            rgb = rgb.astype(np.uint8)
+        return Reference(
             rgb=rgb,
             depth=getattr(self.tare, "depth", None),
             pressure_pa=self.pressure_pa,
-            t=frames[-1].t,
-            n_frames=len(frames),
+            t=float(getattr(self.tare, "t", 0.0)),
+            n_frames=int(getattr(self.tare, "n_frames", 1)),
         )
-        return ref, None if self.offset is None else self.offset.copy()
+
+    def offset_copy(self) -> NDArray[np.float64] | None:
+        return None if self.offset is None else self.offset.copy()
+
+    def set_state(self, step: RezeroStep) -> bool:
+        """Take a recorded step's state (a replay); False when it is the current one (the
+        start of a recording made before any re-zero: nothing to change)."""
+        offset = None if step.offset is None else np.array(step.offset, np.float64)
+        same = (
+            self.pressure_pa == step.reference_pressure_pa
+            and self.gain == step.gain
+            and self.bias == step.bias
+            and (
+                (offset is None and self.offset is None)
+                or (
+                    offset is not None
+                    and self.offset is not None
+                    and np.array_equal(offset, self.offset)
+                )
+            )
+        )
+        self.pressure_pa = float(step.reference_pressure_pa)
+        self.gain, self.bias = float(step.gain), float(step.bias)
+        self.offset = offset
+        return not same
 
     @property
     def drift_pa(self) -> float:
@@ -207,28 +243,17 @@ class AutoZero:
 
 
 class RecordedRezero:
-    """A replay's re-zero steps, taken from the recording instead of decided: keeps the
-    evidence (frame, displacements) of the frames the steps name and hands each step out
-    before its first frame."""
+    """A replay's re-zero steps, taken from the recording instead of decided: each recorded
+    state is set before the frame it was first used for."""
 
     def __init__(self, steps: list[RezeroStep]) -> None:
         self.steps = deque(sorted(steps, key=lambda s: s.first_frame_index))
-        self._needed = {i for s in steps for i in s.frame_indices}
-        self._kept: dict[int, Evidence] = {}
 
-    def keep(self, frame: Frame, displacements: Any) -> None:
-        """Stage one, after tracking ``frame``: keep it if a step names it."""
-        if frame.index in self._needed:
-            self._kept[frame.index] = (frame, displacements)
-
-    def before(self, frame: Frame) -> list[tuple[RezeroStep, list[Evidence]]]:
-        """Steps to apply before tracking ``frame``, with their evidence."""
+    def before(self, frame: Frame) -> list[RezeroStep]:
+        """Steps to apply before tracking ``frame`` (the last one wins)."""
         out = []
         while self.steps and self.steps[0].first_frame_index <= frame.index:
-            step = self.steps.popleft()
-            ev = [self._kept.pop(i) for i in step.frame_indices if i in self._kept]
-            if ev:
-                out.append((step, ev))
+            out.append(self.steps.popleft())
         return out
 
 
@@ -236,6 +261,7 @@ def step_message(step: RezeroStep) -> Any:
     """The RezeroEvent protobuf of a step (recordings)."""
     from bubble_rt.io.protocol import pb
 
+    off = [] if step.offset is None else np.asarray(step.offset, np.float64).ravel().tolist()
     return pb.RezeroEvent(
         time_ns=step.time_ns,
         first_frame_index=step.first_frame_index,
@@ -243,15 +269,22 @@ def step_message(step: RezeroStep) -> Any:
         frame_indices=list(step.frame_indices),
         reference_pressure_pa=step.reference_pressure_pa,
         drift_pa=step.drift_pa,
+        gain=step.gain,
+        bias=step.bias,
+        node_offset=off,
     )
 
 
 def step_from_message(msg: Any) -> RezeroStep:
+    off = np.asarray(msg.node_offset, np.float64)
     return RezeroStep(
         first_frame_index=int(msg.first_frame_index),
         weight=float(msg.weight),
         frame_indices=tuple(int(i) for i in msg.frame_indices),
         reference_pressure_pa=float(msg.reference_pressure_pa),
+        gain=float(msg.gain),
+        bias=float(msg.bias),
+        offset=off.reshape(-1, 3) if off.size and off.size % 3 == 0 else None,
         drift_pa=float(msg.drift_pa),
         time_ns=int(msg.time_ns),
     )

@@ -147,6 +147,8 @@ class Daemon:
         self._recorded_rezero: rezero.RecordedRezero | None = None
         self.rezero_count = 0
         self.last_rezero_ns = 0
+        #: A recording just started: write the re-zero state with its first frame.
+        self._rezero_anchor = False
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
@@ -396,6 +398,10 @@ class Daemon:
             cold = False
             recorder = self.recorder
             if recorder is not None:
+                if self._rezero_anchor:
+                    # The state the frames are measured against when recording starts.
+                    self._rezero_anchor = False
+                    self._record_rezero(recorder, 0.0, (), frame)
                 recorder.write_frame(frame)
                 # Cleared by the solve that honours it (this frame may be dropped unsolved).
                 cold = self._cold_next
@@ -408,8 +414,6 @@ class Daemon:
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
             disp = self._tare_displacements(data)
-            if self._recorded_rezero is not None:
-                self._recorded_rezero.keep(frame, disp)
             item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder, disp)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
@@ -465,8 +469,9 @@ class Daemon:
         if self._follower is None or not hasattr(self.processor, "follow_reference"):
             return
         if self._recorded_rezero is not None:
-            for step, evidence in self._recorded_rezero.before(frame):
-                self._apply_rezero(evidence, step.weight, frame)
+            steps = self._recorded_rezero.before(frame)
+            if steps and self._follower.set_state(steps[-1]):
+                self._follow(frame, steps[-1].weight, steps[-1].frame_indices)
             return
         due = self.autozero.take_due()
         if due:
@@ -484,10 +489,23 @@ class Daemon:
     def _apply_rezero(self, evidence: list[rezero.Evidence], weight: float, frame: Frame) -> None:
         follower = self._follower
         assert follower is not None
-        frames = [f for f, _ in evidence]
         try:
-            ref, offset = follower.step(evidence, weight)
-            ok = bool(self.processor.follow_reference(ref, offset))  # type: ignore[union-attr]
+            follower.step(evidence, weight)
+        except Exception as exc:
+            self._error("rezero", exc)
+            return
+        self._follow(frame, weight, tuple(f.index for f, _ in evidence))
+
+    def _follow(self, frame: Frame, weight: float, indices: tuple[int, ...]) -> None:
+        """Track against the follower's state from ``frame`` on, and record the step."""
+        follower = self._follower
+        assert follower is not None
+        try:
+            ok = bool(
+                self.processor.follow_reference(  # type: ignore[union-attr]
+                    follower.reference(), follower.offset_copy()
+                )
+            )
         except Exception as exc:
             self._error("rezero", exc)
             return
@@ -495,19 +513,30 @@ class Daemon:
             self._error("rezero", "this estimator kind cannot follow a reference; turned off")
             self.autozero.enabled = False
             return
+        self.rezero_count += 1
+        self.last_rezero_ns = int(round(frame.t * 1e9))
+        rec = self.recorder
+        if rec is not None and not self._rezero_anchor:
+            self._record_rezero(rec, weight, indices, frame)
+
+    def _record_rezero(
+        self, rec: Any, weight: float, indices: tuple[int, ...], frame: Frame
+    ) -> None:
+        f = self._follower
+        if f is None:
+            return
         step = rezero.RezeroStep(
             first_frame_index=frame.index,
             weight=weight,
-            frame_indices=tuple(f.index for f in frames),
-            reference_pressure_pa=follower.pressure_pa,
-            drift_pa=follower.drift_pa,
+            frame_indices=indices,
+            reference_pressure_pa=f.pressure_pa,
+            gain=f.gain,
+            bias=f.bias,
+            offset=f.offset,
+            drift_pa=f.drift_pa,
             time_ns=int(round(frame.t * 1e9)),
         )
-        self.rezero_count += 1
-        self.last_rezero_ns = step.time_ns
-        rec = self.recorder
-        if rec is not None:
-            rec.write_message(TOPIC_REZERO, rezero.step_message(step), frame.t, frame.index)
+        rec.write_message(TOPIC_REZERO, rezero.step_message(step), frame.t, frame.index)
 
     def set_auto_zero(self, enabled: bool) -> None:
         """Turn re-zeroing on or off (control request ``set_auto_zero``); turning it on starts
@@ -704,6 +733,7 @@ class Daemon:
         )
         self._recording_fault_counted = False
         self._cold_next = True
+        self._rezero_anchor = True
         self.recorder = rec
 
 
