@@ -8,7 +8,8 @@ the other sends valid state-changing ones every few seconds (set_auto_zero, most
 a short record_start / record_stop into a temporary folder, deleted after). Every
 `--interval` seconds it samples the daemon's resident memory, thread count, open file
 descriptors, the published frame rate and the status's re-zero count and drift. It reports
-the start, end, extremes and least-squares slope per 10 minutes of each, whether each is flat
+the start, end, extremes and least-squares slope per 10 minutes (after `--warmup`) of each,
+whether each is flat
 (RSS within 10 MB, threads and fds within 0.5, rate within 5 % of its mean per 10 minutes),
 the fuzzers' counts, and exits non-zero if the daemon died or stopped publishing.
 
@@ -184,6 +185,9 @@ def main() -> int:
     ap.add_argument("--scene", default="drift", help="simulated scene (looped)")
     ap.add_argument("--no-auto-zero", action="store_true", help="re-zeroing off (and not fuzzed)")
     ap.add_argument(
+        "--warmup", type=float, default=60.0, help="seconds left out of the slopes (start-up)"
+    )
+    ap.add_argument(
         "--valid-period", type=float, default=5.0, help="seconds between valid state changes"
     )
     ap.add_argument("--seed", type=int, default=0)
@@ -277,10 +281,13 @@ def main() -> int:
         "auto_zero": not args.no_auto_zero,
     }
     ts = [float(s["t_s"]) for s in samples]
+    settled = [i for i, t in enumerate(ts) if t >= args.warmup] or list(range(len(ts)))
+    summary["slopes_from_s"] = ts[settled[0]]
     for key in ("rss_mb", "threads", "fds", "rate_hz"):
         vals = [float(s[key]) for s in samples]
-        slope = slope_per_10min(ts, vals)
-        limit = FLAT_PER_10MIN.get(key, FLAT_RATE_FRACTION * sum(vals) / len(vals))
+        tail = [vals[i] for i in settled]
+        slope = slope_per_10min([ts[i] for i in settled], tail)
+        limit = FLAT_PER_10MIN.get(key, FLAT_RATE_FRACTION * sum(tail) / len(tail))
         summary[key] = {
             "start": vals[0],
             "end": vals[-1],
