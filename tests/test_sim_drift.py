@@ -4,13 +4,16 @@ scene names them."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from _sim_fake import small_scene
+from _sim_fake import FakePhysics, small_scene
 from bubble_rt.sim import effects
 from bubble_rt.sim.indenters import preset
 from bubble_rt.sim.physics import GasSettings, MembraneSim, default_rest_mesh
 from bubble_rt.sim.scene import EFFECT_DEFAULTS, SceneError, parse_scene
+from bubble_rt.sim.simulator import Simulator
 
 AWAY = np.diag([1.0, 1.0, 1.0, 1.0])
 AWAY[2, 3] = 0.5  # the indenter half a metre above the dome: no contact
@@ -124,3 +127,34 @@ def test_drift_scene_names_the_drift_effects():
     hour = sc.frames / sc.rates.camera_hz * sc.rates.time_scale
     assert hour >= 3600.0
     assert 2.0 <= sc.params("gas_temperature_drift")["kelvin"] <= 5.0
+
+
+class GasRecordingPhysics(FakePhysics):
+    """The kinematic fake, recording the gas scale the simulator sets before each solve."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scales: list[float] = []
+
+    def create(self, scene, rest_mesh):  # type: ignore[no-untyped-def]
+        sim = super().create(scene, rest_mesh)
+        sim.set_gas_scale = self.scales.append
+        return sim
+
+
+def test_gas_drift_reaches_the_physics_only_when_named():
+    plain = GasRecordingPhysics()
+    sim = Simulator(small_scene("['gas_compression']", frames=4), physics=plain, use_cache=False)
+    list(sim.frames())
+    assert plain.scales == [] and not sim.stages_run & {"gas_temperature_drift", "gas_leak"}
+
+    drifting = GasRecordingPhysics()
+    sc = small_scene("['gas_compression', 'gas_temperature_drift', 'gas_leak']", frames=4)
+    sc = sc.with_changes(rates=replace(sc.rates, time_scale=3600.0 * 30.0))  # 1 frame: 1 h
+    sim = Simulator(sc, physics=drifting, use_cache=False)
+    list(sim.frames())
+    temp, leak = sc.params("gas_temperature_drift"), sc.params("gas_leak")
+    expect = [effects.gas_scale(temp, leak, k * 3600.0) for k in range(4)]
+    assert drifting.scales == pytest.approx(expect)
+    assert expect[0] == 1.0 and expect[1] > 1.0  # warming outweighs the leak
+    assert {"gas_temperature_drift", "gas_leak"} <= sim.stages_run
