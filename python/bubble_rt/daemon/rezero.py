@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -38,8 +38,8 @@ from numpy.typing import NDArray
 from bubble_rt.config import AutoZeroSection
 from bubble_rt.frames import Frame
 
-#: Untouched frames kept per interval as candidates (the rest are skipped: each holds a full
-#: image pair, about 2 MB at 640 x 480).
+#: Untouched frames kept per interval as candidates (the rest are skipped: each holds its
+#: colour image, about 0.9 MB at 640 x 480).
 CANDIDATES_PER_INTERVAL = 4
 
 
@@ -220,7 +220,9 @@ class AutoZero:
             spacing = s.interval_s / CANDIDATES_PER_INTERVAL
             last = self._candidates[-1][0].t if self._candidates else -math.inf
             if t - last >= spacing and t - self._last_touch >= s.holdoff_s:
-                self._candidates.append((frame, displacements))
+                # Only the colour image, pressure and displacements are used: keep no more.
+                light = replace(frame, depth=None, truth=None, wrench=None)
+                self._candidates.append((light, displacements))
             # A candidate becomes evidence once holdoff_s has passed after it untouched.
             while self._candidates and t - self._candidates[0][0].t >= s.holdoff_s:
                 self._evidence.append(self._candidates.popleft())
