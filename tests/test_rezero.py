@@ -249,7 +249,7 @@ def test_replay_of_a_recording_started_mid_drift_gives_the_live_forces(tmp_path)
     frames instead of deciding: the same forces, press and drift included."""
     p = tmp_path / "live.mcap"
     d, forces = live(drift_config(), drift_camera(), N_FRAMES - 5, record=(100, str(p)))
-    assert d.rezero_count > 50
+    assert d.rezero.count > 50
     events = [m for t, m, _, _ in iter_messages(p) if t == TOPIC_REZERO]
     assert len(McapRecording(p).rezero) == len(events)
     anchor, steps = events[0], events[1:]
@@ -258,7 +258,7 @@ def test_replay_of_a_recording_started_mid_drift_gives_the_live_forces(tmp_path)
     replay = ReplayCamera(str(p), realtime=False, loop=False, recorded=True)
     d2, replayed = live(drift_config(**{"camera.pace": "fast"}), replay, max(forces.fz) - 1)
     assert d2.frames_dropped == 0
-    assert d2.rezero_count == len(events)
+    assert d2.rezero.count == len(events)
     common = sorted(set(forces.fz) & set(replayed.fz))
     assert len(common) > 0.8 * len(forces.fz)
     np.testing.assert_allclose(

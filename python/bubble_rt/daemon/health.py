@@ -38,14 +38,9 @@ class Daemon(Protocol):
     _latencies: deque[float]
     _publish_times: deque[float]
     _recording_fault_counted: bool
-    autozero: Any
-    last_rezero_ns: int
-    rezero_count: int
+    rezero: Any
 
     def _error(self, kind: str, exc: BaseException | str) -> None: ...
-
-    @property
-    def drift_pa(self) -> float: ...
 
 
 def frames_dropped(d: Daemon) -> int:
@@ -141,10 +136,10 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         recording_dropped=recording_dropped,
         mesh_id=d.mesh_msg.mesh_id if d.mesh_msg is not None else "",
         uptime_s=now - d._started_at,
-        auto_zero=d.autozero.enabled,
-        drift_pa=d.drift_pa,
-        last_rezero_ns=d.last_rezero_ns,
-        rezero_count=d.rezero_count,
+        auto_zero=d.rezero.enabled,
+        drift_pa=d.rezero.drift_pa,
+        last_rezero_ns=d.rezero.last_ns,
+        rezero_count=d.rezero.count,
     )
     lat = np.asarray(list(d._latencies)[-300:])
     if lat.size:

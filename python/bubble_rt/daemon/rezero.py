@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -259,6 +261,131 @@ class RecordedRezero:
         return out
 
 
+class Rezeroing:
+    """The daemon's re-zeroing, all in one place: the decisions (:class:`AutoZero`, stage two
+    observes), the followed state (:class:`ReferenceFollower`), the steps applied before stage
+    one tracks a frame (decided, or a replay's recorded ones), their recording, and what the
+    status reports. ``on_error(kind, exc)``: the daemon's fault counter."""
+
+    def __init__(
+        self, section: AutoZeroSection, on_error: Callable[[str, BaseException | str], None]
+    ) -> None:
+        self.autozero = AutoZero(section)
+        self.follower: ReferenceFollower | None = None
+        self.recorded: RecordedRezero | None = None
+        self.count = 0
+        self.last_ns = 0
+        self._on_error = on_error
+        self._anchor = False
+
+    # ------------------------------------------------------------------ state
+    @property
+    def enabled(self) -> bool:
+        return self.autozero.enabled
+
+    def set_enabled(self, enabled: bool) -> None:
+        """Control request ``set_auto_zero``; turning it on starts a fresh hold-off."""
+        self.autozero.set_enabled(enabled, time.time())
+
+    @property
+    def drift_pa(self) -> float:
+        """The pressure drift followed since the last tare (Pa)."""
+        return self.follower.drift_pa if self.follower is not None else 0.0
+
+    def use_recording(self, messages: list[Any] | None) -> None:
+        """A replay of this project's recording (its RezeroEvent messages, None: not one):
+        set the live run's states at the same frames, and decide nothing."""
+        if messages is not None:
+            self.recorded = RecordedRezero([step_from_message(m) for m in messages])
+            self.autozero.enabled = False
+
+    def tare(self, processor: Any, t: float) -> None:
+        """A new reference was installed (start, tare): follow from it, drift 0."""
+        ref = getattr(processor, "reference", None)
+        self.follower = ReferenceFollower(ref) if hasattr(ref, "pressure_pa") else None
+        self.autozero.reset(t)
+
+    def recording_started(self) -> None:
+        """The next recorded frame is preceded by the current state (weight 0)."""
+        self._anchor = True
+
+    # ------------------------------------------------------------------ per frame
+    def before(self, frame: Frame, processor: Any, recorder: Any) -> None:
+        """Stage one, before tracking (and recording) ``frame``: apply the step due, if any,
+        and write the state a just-started recording begins with."""
+        if self.follower is not None and hasattr(processor, "follow_reference"):
+            if self.recorded is not None:
+                steps = self.recorded.before(frame)
+                if steps and self.follower.set_state(steps[-1]):
+                    self._follow(frame, processor, recorder, steps[-1].weight, ())
+            else:
+                due = self.autozero.take_due()
+                if due:
+                    try:
+                        self.follower.step(due, self.autozero.weight)
+                    except Exception as exc:
+                        self._on_error("rezero", exc)
+                    else:
+                        idx = tuple(f.index for f, _ in due)
+                        self._follow(frame, processor, recorder, self.autozero.weight, idx)
+        if recorder is not None and self._anchor:
+            self._anchor = False
+            self._record(recorder, 0.0, (), frame)
+
+    def displacements(self, data: Any) -> Any:
+        """Stage one's node displacements measured from the tare's mesh (the tracker measures
+        them from the nodes moved by the followed offset): evidence for :meth:`observe`."""
+        u = getattr(data, "U", None)
+        if u is None:
+            return None
+        off = self.follower.offset if self.follower is not None else None
+        return u + off if off is not None else u
+
+    def observe(
+        self, frame: Frame, contact: Any, net_force: Any, reasons: list[str], displacements: Any
+    ) -> None:
+        """Stage two, after estimating ``frame``."""
+        self.autozero.observe(frame, untouched(contact, net_force, reasons), displacements)
+
+    def _follow(
+        self, frame: Frame, processor: Any, recorder: Any, weight: float, idx: tuple[int, ...]
+    ) -> None:
+        f = self.follower
+        assert f is not None
+        try:
+            ok = bool(processor.follow_reference(f.reference(), f.offset_copy()))
+        except Exception as exc:
+            self._on_error("rezero", exc)
+            return
+        if not ok:
+            self._on_error("rezero", "this estimator kind cannot follow a reference; turned off")
+            self.autozero.enabled = False
+            return
+        self.count += 1
+        self.last_ns = int(round(frame.t * 1e9))
+        if recorder is not None and not self._anchor:
+            self._record(recorder, weight, idx, frame)
+
+    def _record(self, recorder: Any, weight: float, idx: tuple[int, ...], frame: Frame) -> None:
+        from bubble_rt.io.mcap import TOPIC_REZERO
+
+        f = self.follower
+        if f is None:
+            return
+        step = RezeroStep(
+            first_frame_index=frame.index,
+            weight=weight,
+            frame_indices=idx,
+            reference_pressure_pa=f.pressure_pa,
+            gain=f.gain,
+            bias=f.bias,
+            offset=f.offset,
+            drift_pa=f.drift_pa,
+            time_ns=int(round(frame.t * 1e9)),
+        )
+        recorder.write_message(TOPIC_REZERO, step_message(step), frame.t, frame.index)
+
+
 def step_message(step: RezeroStep) -> Any:
     """The RezeroEvent protobuf of a step (recordings)."""
     from bubble_rt.io.protocol import pb
@@ -294,6 +421,7 @@ def step_from_message(msg: Any) -> RezeroStep:
 
 __all__ = [
     "AutoZero",
+    "Rezeroing",
     "RecordedRezero",
     "ReferenceFollower",
     "Evidence",

@@ -51,7 +51,7 @@ from bubble_rt.daemon.sources import (
 )
 from bubble_rt.frames import Frame
 from bubble_rt.io import protocol
-from bubble_rt.io.mcap import TOPIC_MESH, TOPIC_REZERO
+from bubble_rt.io.mcap import TOPIC_MESH
 
 #: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
 #: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
@@ -140,15 +140,8 @@ class Daemon:
         self._started_at = 0.0
         self._last_state: tuple[int, str] | None = None
         self.ctx: zmq.Context | None = None
-        #: Re-zeroing (bubble_rt.daemon.rezero): the decisions, the followed reference, and
-        #: for a replay of this project's recording the live run's steps instead.
-        self.autozero = rezero.AutoZero(self.config.auto_zero)
-        self._follower: rezero.ReferenceFollower | None = None
-        self._recorded_rezero: rezero.RecordedRezero | None = None
-        self.rezero_count = 0
-        self.last_rezero_ns = 0
-        #: A recording just started: write the re-zero state with its first frame.
-        self._rezero_anchor = False
+        #: Following the drift while untouched (bubble_rt.daemon.rezero).
+        self.rezero = rezero.Rezeroing(self.config.auto_zero, self._error)
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
@@ -162,13 +155,7 @@ class Daemon:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
         self._use_recorded_settings(cam)
-        steps = getattr(cam, "recorded_rezero", None)
-        if steps is not None:
-            # A replay applies the live run's re-zero steps, at the same frames, and no other.
-            self._recorded_rezero = rezero.RecordedRezero(
-                [rezero.step_from_message(m) for m in steps]
-            )
-            self.autozero.enabled = False
+        self.rezero.use_recording(getattr(cam, "recorded_rezero", None))
         self._resolve_profile(cam)
         cfg = self.config
         if self._pressure_arg is None:
@@ -394,14 +381,10 @@ class Daemon:
                     frames, self._collecting = self._collecting, []
                     self._install_reference(frames)
                 continue
-            self._rezero_before(frame)
             cold = False
             recorder = self.recorder
+            self.rezero.before(frame, self.processor, recorder)
             if recorder is not None:
-                if self._rezero_anchor:
-                    # The state the frames are measured against when recording starts.
-                    self._rezero_anchor = False
-                    self._record_rezero(recorder, 0.0, (), frame)
                 recorder.write_frame(frame)
                 # Cleared by the solve that honours it (this frame may be dropped unsolved).
                 cold = self._cold_next
@@ -413,7 +396,7 @@ class Daemon:
                 self._error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
-            disp = self._tare_displacements(data)
+            disp = self.rezero.displacements(data)
             item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder, disp)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
@@ -453,9 +436,7 @@ class Daemon:
                 with self._proc_lock:
                     self.processor.set_reference(frames)
             self._ref_frames = frames
-            ref = getattr(self.processor, "reference", None)
-            self._follower = rezero.ReferenceFollower(ref) if hasattr(ref, "pressure_pa") else None
-            self.autozero.reset(frames[-1].t)
+            self.rezero.tare(self.processor, frames[-1].t)
             if self.recorder is not None:
                 self.recorder.write_reference(frames)
         except Exception as exc:
@@ -463,91 +444,9 @@ class Daemon:
         finally:
             self._tare_requested = False
 
-    def _rezero_before(self, frame: Frame) -> None:
-        """Stage one, before tracking ``frame``: apply a re-zero step that is due (decided by
-        stage two from untouched frames, or read from the replayed recording)."""
-        if self._follower is None or not hasattr(self.processor, "follow_reference"):
-            return
-        if self._recorded_rezero is not None:
-            steps = self._recorded_rezero.before(frame)
-            if steps and self._follower.set_state(steps[-1]):
-                self._follow(frame, steps[-1].weight, steps[-1].frame_indices)
-            return
-        due = self.autozero.take_due()
-        if due:
-            self._apply_rezero(due, self.autozero.weight, frame)
-
-    def _tare_displacements(self, data: Any) -> Any:
-        """Stage one's node displacements measured from the tare's mesh (the tracker measures
-        them from the nodes moved by the followed offset): re-zeroing evidence."""
-        u = getattr(data, "U", None)
-        if u is None:
-            return None
-        off = self._follower.offset if self._follower is not None else None
-        return u + off if off is not None else u
-
-    def _apply_rezero(self, evidence: list[rezero.Evidence], weight: float, frame: Frame) -> None:
-        follower = self._follower
-        assert follower is not None
-        try:
-            follower.step(evidence, weight)
-        except Exception as exc:
-            self._error("rezero", exc)
-            return
-        self._follow(frame, weight, tuple(f.index for f, _ in evidence))
-
-    def _follow(self, frame: Frame, weight: float, indices: tuple[int, ...]) -> None:
-        """Track against the follower's state from ``frame`` on, and record the step."""
-        follower = self._follower
-        assert follower is not None
-        try:
-            ok = bool(
-                self.processor.follow_reference(  # type: ignore[union-attr]
-                    follower.reference(), follower.offset_copy()
-                )
-            )
-        except Exception as exc:
-            self._error("rezero", exc)
-            return
-        if not ok:
-            self._error("rezero", "this estimator kind cannot follow a reference; turned off")
-            self.autozero.enabled = False
-            return
-        self.rezero_count += 1
-        self.last_rezero_ns = int(round(frame.t * 1e9))
-        rec = self.recorder
-        if rec is not None and not self._rezero_anchor:
-            self._record_rezero(rec, weight, indices, frame)
-
-    def _record_rezero(
-        self, rec: Any, weight: float, indices: tuple[int, ...], frame: Frame
-    ) -> None:
-        f = self._follower
-        if f is None:
-            return
-        step = rezero.RezeroStep(
-            first_frame_index=frame.index,
-            weight=weight,
-            frame_indices=indices,
-            reference_pressure_pa=f.pressure_pa,
-            gain=f.gain,
-            bias=f.bias,
-            offset=f.offset,
-            drift_pa=f.drift_pa,
-            time_ns=int(round(frame.t * 1e9)),
-        )
-        rec.write_message(TOPIC_REZERO, rezero.step_message(step), frame.t, frame.index)
-
     def set_auto_zero(self, enabled: bool) -> None:
-        """Turn re-zeroing on or off (control request ``set_auto_zero``); turning it on starts
-        a fresh hold-off."""
-        self.autozero.set_enabled(enabled, time.time())
-
-    @property
-    def drift_pa(self) -> float:
-        """The pressure drift the reference has followed since the last tare (Pa)."""
-        f = self._follower
-        return f.drift_pa if f is not None else 0.0
+        """Turn re-zeroing on or off (control request ``set_auto_zero``)."""
+        self.rezero.set_enabled(enabled)
 
     def request_tare(self) -> None:
         """Capture a new reference from the next untouched frames."""
@@ -602,11 +501,7 @@ class Daemon:
             ):
                 if problem:
                     reasons.append(problem)
-            self.autozero.observe(
-                item.frame,
-                rezero.untouched(contact, est.net_force, reasons),
-                item.displacements,
-            )
+            self.rezero.observe(item.frame, contact, est.net_force, reasons, item.displacements)
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
             if dp is None:
@@ -733,7 +628,7 @@ class Daemon:
         )
         self._recording_fault_counted = False
         self._cold_next = True
-        self._rezero_anchor = True
+        self.rezero.recording_started()
         self.recorder = rec
 
 
