@@ -1,27 +1,29 @@
-"""Staying zeroed: the reference follows the drift while the membrane is untouched.
+"""Staying zeroed: what the daemon measures against follows the drift while untouched.
 
 A real bubble drifts over hours (the camera warms the air, a little gas leaks, the LEDs warm
 up), and a reference captured once reads that drift as force. While no contact has been seen
-for a while, :class:`AutoZero` moves the reference (images and pressure) towards the untouched
-frames: a first-order follower of time constant ``time_constant_s``, updated in steps every
-``interval_s`` (each step blends the mean of the untouched frames since the last step with
-weight ``1 - exp(-interval_s / time_constant_s)``).
+for a while, the reference follows the untouched frames (:class:`Rezeroing`, the daemon's
+part): a first-order follower of time constant ``time_constant_s``, updated in steps every
+``interval_s``, each blending the evidence since the last step with weight
+``1 - exp(-interval_s / time_constant_s)`` (:class:`AutoZero` decides, stage two).
 
 What counts as untouched (:func:`untouched`): no contact node and no degraded reason (a frame
-the daemon does not trust, e.g. a plausibility check that failed, is no evidence). A frame moves the reference only when no touched frame came within
-``holdoff_s`` before *and* after it, so neither a press nor its first, not yet detected
-moments, nor the membrane relaxing after it, ever enters the reference: a press held for
-hours is never zeroed away.
+the daemon does not trust, e.g. a plausibility check that failed, is no evidence). A frame
+moves the reference only when no touched frame came within ``holdoff_s`` before *and* after
+it, so neither a press nor its first, not yet detected moments, nor the membrane relaxing
+after it, ever enters the reference: a press held for hours is never zeroed away.
+
+What follows is what the tracker measures against (:class:`ReferenceFollower`): the pressure,
+the node positions (an offset from the tare's mesh) and the flow's reference image (the tare's
+with the LEDs' gain and offset). A step takes a few ms; the mesh and the estimator stay those
+of the last tare (the estimator is linearised about its pressure: rebuilding it takes about
+0.4 s).
 
 The steps are discrete so a recording can carry them (:class:`RezeroStep`, MCAP topic
 ``/bubble_rt/rezero``, with the state they set, and the state at the start of the recording)
-and a replay set the same states at the same frames instead of deciding itself: the replay
-reproduces the live forces, however the recording was started.
-
-What follows is what the tracker measures against (:class:`ReferenceFollower`): the pressure,
-the node positions and the flow's reference image (its brightness and gain). A step takes a
-few ms; the mesh and the estimator stay those of the last tare (the estimator is linearised
-about its pressure: rebuilding it takes about 0.4 s).
+and a replay set the same states at the same frames instead of deciding itself
+(:class:`RecordedRezero`): the replay reproduces the live forces, however the recording was
+started.
 """
 
 from __future__ import annotations
