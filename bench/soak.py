@@ -1,14 +1,21 @@
-"""Soak (not a test): the daemon for a long run on the demo scene under a control-request fuzzer.
+"""Soak (not a test): the daemon for a long run under a control-request fuzzer.
 
-Starts `bubble-rt serve` on the built-in simulated scene, subscribes to its force stream, and
-runs a fuzzer that sends random, truncated, oversized, wrong-version and out-of-range control
-requests (bounded in count and rate, loopback only). Every `--interval` seconds it samples the
-daemon's resident memory, thread count, open file descriptors and the published frame rate.
-It reports the start, end and maximum of each, the fuzzer's request/reply counts, and exits
-non-zero if the daemon died or stopped publishing.
+Starts `bubble-rt serve` on a simulated scene (default ``drift``: gas warming, a leak and LED
+drift, an hour played per minute, looped, with re-zeroing on and scaled to the compression),
+subscribes to its force stream, and runs two fuzzers: one sends random, truncated, oversized,
+wrong-version and out-of-range control requests (bounded in count and rate, loopback only);
+the other sends valid state-changing ones every few seconds (set_auto_zero, mostly on; tare;
+a short record_start / record_stop into a temporary folder, deleted after). Every
+`--interval` seconds it samples the daemon's resident memory, thread count, open file
+descriptors, the published frame rate and the status's re-zero count and drift. It reports
+the start, end, extremes and least-squares slope per 10 minutes (after `--warmup`) of each,
+whether each is flat
+(RSS within 10 MB, threads and fds within 0.5, rate within 5 % of its mean per 10 minutes),
+the fuzzers' counts, and exits non-zero if the daemon died or stopped publishing.
 
-    OPENBLAS_NUM_THREADS=1 python3 bench/soak.py --minutes 30 --json soak.json
-    python3 bench/soak.py --minutes 2 --interval 5        # a quick look
+    OPENBLAS_NUM_THREADS=1 nice -n 19 python3 bench/soak.py --minutes 30 --json soak.json
+    python3 bench/soak.py --minutes 3 --interval 10       # a quick look
+    python3 bench/soak.py --scene demo --no-auto-zero      # the former soak
 """
 
 from __future__ import annotations
@@ -17,10 +24,12 @@ import argparse
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -106,6 +115,59 @@ def fuzz(ctl: str, stop: threading.Event, stats: FuzzStats, rate_hz: float, seed
         stop.wait(1.0 / rate_hz)
 
 
+@dataclass
+class ValidStats:
+    sent: dict[str, int] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)
+
+
+def valid_ops(
+    ctl: str, stop: threading.Event, stats: ValidStats, period_s: float, seed: int
+) -> None:
+    """Valid state changes every ``period_s``: set_auto_zero (on 3 times in 4), tare, or a
+    recording of a second or two (deleted at once: the inputs are about 20 MB/s)."""
+    rng = random.Random(seed + 1)
+    folder = tempfile.mkdtemp(prefix="bubble_rt_soak_rec_")
+    try:
+        with Controller(ctl, timeout_s=10) as c:
+            while not stop.wait(period_s):
+                op = rng.choices(["auto_zero", "tare", "record"], weights=[6, 1, 2])[0]
+                stats.sent[op] = stats.sent.get(op, 0) + 1
+                try:
+                    if op == "auto_zero":
+                        c.set_auto_zero(rng.random() < 0.75)
+                    elif op == "tare":
+                        c.tare()
+                    else:
+                        path = c.record_start(os.path.join(folder, f"r{stats.sent[op]}.mcap"))
+                        stop.wait(rng.uniform(0.5, 2.0))
+                        c.record_stop()
+                        if os.path.exists(path):
+                            os.unlink(path)
+                except Exception:
+                    stats.refused[op] = stats.refused.get(op, 0) + 1
+            c.set_auto_zero(True)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def slope_per_10min(t_s: list[float], values: list[float]) -> float:
+    """Least-squares slope of ``values`` over ``t_s`` (s), per 10 minutes."""
+    if len(t_s) < 2:
+        return 0.0
+    t = [x - sum(t_s) / len(t_s) for x in t_s]
+    v_mean = sum(values) / len(values)
+    den = sum(x * x for x in t)
+    return (
+        600.0 * sum(x * (v - v_mean) for x, v in zip(t, values, strict=True)) / den if den else 0.0
+    )
+
+
+#: How much a quantity may move per 10 minutes and still count as flat.
+FLAT_PER_10MIN = {"rss_mb": 10.0, "threads": 0.5, "fds": 0.5}
+FLAT_RATE_FRACTION = 0.05
+
+
 def count_frames(pub: str, ctl: str, stop: threading.Event, counter: list[int]) -> None:
     with Subscriber(pub, ctl, timeout_s=600) as sub:
         while not stop.is_set():
@@ -120,13 +182,28 @@ def main() -> int:
     ap.add_argument("--interval", type=float, default=10.0, help="seconds between samples")
     ap.add_argument("--fuzz-rate", type=float, default=50.0, help="control requests per second")
     ap.add_argument("--mesh", default="medium")
+    ap.add_argument("--scene", default="drift", help="simulated scene (looped)")
+    ap.add_argument("--no-auto-zero", action="store_true", help="re-zeroing off (and not fuzzed)")
+    ap.add_argument(
+        "--warmup", type=float, default=60.0, help="seconds left out of the slopes (start-up)"
+    )
+    ap.add_argument(
+        "--valid-period", type=float, default=5.0, help="seconds between valid state changes"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write every sample and the summary here")
     args = ap.parse_args()
 
     pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    # The drift scene plays an hour per minute: re-zeroing scaled alike (60 s -> 1 s).
+    cfg_path = f"/tmp/bubble_rt_soak_{os.getpid()}.toml"
+    with open(cfg_path, "w") as f:
+        f.write("[camera]\nsim_prerender = false\n[auto_zero]\n")
+        f.write(f"enabled = {'false' if args.no_auto_zero else 'true'}\n")
+        f.write("time_constant_s = 1.0\ninterval_s = 0.25\n")
     cmd = [sys.executable, "-m", "bubble_rt", "serve", "--mesh", args.mesh]
+    cmd += ["--config", cfg_path, "--camera", f"sim:{args.scene}"]
     cmd += ["--pub", pub, "--control", ctl]
     log_path = f"/tmp/bubble_rt_soak_{os.getpid()}.log"
     log = open(log_path, "w")  # noqa: SIM115
@@ -134,6 +211,7 @@ def main() -> int:
     stop = threading.Event()
     frames = [0]
     stats = FuzzStats()
+    vstats = ValidStats()
     samples: list[dict[str, float]] = []
     ok = True
     try:
@@ -145,6 +223,14 @@ def main() -> int:
                 target=fuzz, args=(ctl, stop, stats, args.fuzz_rate, args.seed), daemon=True
             ),
         ]
+        if not args.no_auto_zero:
+            threads.append(
+                threading.Thread(
+                    target=valid_ops,
+                    args=(ctl, stop, vstats, args.valid_period, args.seed),
+                    daemon=True,
+                )
+            )
         for t in threads:
             t.start()
         deadline = time.monotonic() + 120
@@ -164,6 +250,13 @@ def main() -> int:
             last_n, last_t = frames[0], now
             row = {"t_s": round(now - t0, 1), "rss_mb": round(rss, 1), "threads": nthreads}
             row |= {"fds": fds, "rate_hz": round(rate, 2), "fuzz_sent": stats.sent}
+            try:
+                with Controller(ctl, timeout_s=5) as c:
+                    st = c.status()
+                row |= {"auto_zero": st.auto_zero, "rezero_count": st.rezero_count}
+                row |= {"drift_pa": round(st.drift_pa, 1)}
+            except Exception:
+                row |= {"status": "no reply"}
             samples.append(row)
             print(json.dumps(row), flush=True)
             if rate == 0.0:
@@ -181,11 +274,31 @@ def main() -> int:
         log.close()
     if not samples:
         return 1
-    summary: dict[str, object] = {"minutes": args.minutes, "mesh": args.mesh}
+    summary: dict[str, object] = {
+        "minutes": args.minutes,
+        "mesh": args.mesh,
+        "scene": args.scene,
+        "auto_zero": not args.no_auto_zero,
+    }
+    ts = [float(s["t_s"]) for s in samples]
+    settled = [i for i, t in enumerate(ts) if t >= args.warmup] or list(range(len(ts)))
+    summary["slopes_from_s"] = ts[settled[0]]
     for key in ("rss_mb", "threads", "fds", "rate_hz"):
-        vals = [s[key] for s in samples]
-        summary[key] = {"start": vals[0], "end": vals[-1], "max": max(vals), "min": min(vals)}
+        vals = [float(s[key]) for s in samples]
+        tail = [vals[i] for i in settled]
+        slope = slope_per_10min([ts[i] for i in settled], tail)
+        limit = FLAT_PER_10MIN.get(key, FLAT_RATE_FRACTION * sum(tail) / len(tail))
+        summary[key] = {
+            "start": vals[0],
+            "end": vals[-1],
+            "max": max(vals),
+            "min": min(vals),
+            "slope_per_10min": round(slope, 3),
+            "flat": abs(slope) <= limit,
+        }
     summary["fuzz"] = {"sent": stats.sent, "replies": stats.replies, "timeouts": stats.timeouts}
+    summary["valid_ops"] = {"sent": vstats.sent, "refused": vstats.refused}
+    summary["rezero_count"] = samples[-1].get("rezero_count")
     summary["daemon_exit_code"] = proc.returncode
     summary["final_state"] = status.state
     summary["frames_published"] = status.frames_published

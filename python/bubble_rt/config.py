@@ -452,6 +452,43 @@ class ReferenceSection:
 
 
 @dataclass(frozen=True)
+class AutoZeroSection:
+    """Re-zeroing (docs/daemon.md "Drift and re-zeroing"): while no contact has been seen for
+    ``holdoff_s``, the reference (images and pressure) follows the untouched frames, a
+    first-order follower of time constant ``time_constant_s`` updated every ``interval_s``.
+    ``tare`` is unaffected; the control request ``set_auto_zero`` turns it on or off."""
+
+    enabled: bool = option(True, "follow the drift while untouched")
+    time_constant_s: float = option(
+        60.0,
+        "time constant of the reference following the untouched frames (the drift error "
+        "left is about the drift rate times this)",
+        lo=0.1,
+        hi=86400,
+        unit="s",
+    )
+    interval_s: float = option(
+        1.0,
+        "time between two re-zero steps while untouched (each re-builds the deformation "
+        "tracker, a few ms)",
+        lo=0.05,
+        hi=3600,
+        unit="s",
+    )
+    holdoff_s: float = option(
+        2.0,
+        "a frame moves the reference only when no contact and no degraded frame was seen "
+        "within this time before and after it",
+        lo=0.1,
+        hi=3600,
+        unit="s",
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+@dataclass(frozen=True)
 class ProcessingConfig:
     """Pipeline: "two_stage" overlaps the deformation of frame k+1 with the solve of frame k."""
 
@@ -535,6 +572,7 @@ class DaemonConfig:
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    auto_zero: AutoZeroSection = field(default_factory=AutoZeroSection)
     shutdown_timeout_s: float = option(
         2.0,
         "the daemon stops within this time after SIGINT/SIGTERM (threads joined, file finalised)",

@@ -1,5 +1,5 @@
 """Control requests (ControlRequest on the daemon's ROUTER socket): get_mesh, get_config,
-get_status, set_params, tare, record_start, record_stop. Every answer is a ControlReply;
+get_status, set_params, tare, set_auto_zero, record_start, record_stop. Every answer is a ControlReply;
 bad input is refused with a message naming what is wrong, never raised."""
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ class Daemon(Protocol):
     def start_recording(self, path: str, overwrite: bool = False) -> None: ...
 
     def queue_params(self, params: dict[str, float]) -> EstimatorSection: ...
+
+    def set_auto_zero(self, enabled: bool) -> None: ...
 
 
 def validate_params(
@@ -76,6 +78,9 @@ def handle_request(d: Daemon, payload: bytes) -> Any:
             return protocol.error_reply("tare: the reference is still being captured")
         d.request_tare()
         return protocol.ok_reply()
+    if kind == "set_auto_zero":
+        d.set_auto_zero(bool(req.set_auto_zero.enabled))
+        return protocol.ok_reply(status=d.status_message())
     if kind == "record_start":
         rec = d.recorder
         if rec is not None and not rec.failed:

@@ -39,6 +39,7 @@ class Daemon(Protocol):
     _publish_times: deque[float]
     _recording_fault_counted: bool
     _drops_before_reference: int
+    rezero: Any
 
     def _error(self, kind: str, exc: BaseException | str) -> None: ...
 
@@ -145,6 +146,10 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         recording_dropped=recording_dropped,
         mesh_id=d.mesh_msg.mesh_id if d.mesh_msg is not None else "",
         uptime_s=now - d._started_at,
+        auto_zero=d.rezero.enabled,
+        drift_pa=d.rezero.drift_pa,
+        last_rezero_ns=d.rezero.last_ns,
+        rezero_count=d.rezero.count,
     )
     lat = np.asarray(list(d._latencies)[-300:])
     if lat.size:

@@ -74,3 +74,9 @@ class EstimatorProcessor:
 
     def reconfigure(self, params: dict[str, float]) -> None:
         self.pipeline.reconfigure(params)
+
+    def follow_reference(self, reference: Any, offset: Any = None) -> bool:
+        """Re-zero: track against ``reference`` (a ``Reference``) and from the nodes moved by
+        ``offset`` (N x 3, m) from the next frame on; False when the estimator kind cannot
+        (``bubble_rt.daemon.rezero``)."""
+        return self.pipeline.follow_reference(reference, offset)

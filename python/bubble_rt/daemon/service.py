@@ -32,7 +32,7 @@ import zmq
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig, EstimatorSection
-from bubble_rt.daemon import control, faults, health
+from bubble_rt.daemon import control, faults, health, rezero
 from bubble_rt.daemon.processor import (
     EstimatorProcessor,
     PatchFinder,
@@ -71,6 +71,8 @@ class _Item:
     #: The recorder this frame's input was written to: only its forces go into that file, so
     #: a recording started mid-run holds no force whose input it lacks (replay reproduces it).
     recorder: Any = None
+    #: The frame's node displacements from the tare's mesh (N x 3, m; re-zeroing evidence).
+    displacements: Any = None
 
 
 #: A fault kind is logged at most once per this many seconds (with its count so far).
@@ -140,6 +142,8 @@ class Daemon:
         self._started_at = 0.0
         self._last_state: tuple[int, str] | None = None
         self.ctx: zmq.Context | None = None
+        #: Following the drift while untouched (bubble_rt.daemon.rezero).
+        self.rezero = rezero.Rezeroing(self.config.auto_zero, self._error)
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
@@ -153,6 +157,7 @@ class Daemon:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
         self._use_recorded_settings(cam)
+        self.rezero.use_recording(cam.recorded_rezero)
         self._resolve_profile(cam)
         cfg = self.config
         if self._pressure_arg is None:
@@ -380,6 +385,7 @@ class Daemon:
                 continue
             cold = False
             recorder = self.recorder
+            self.rezero.before(frame, self.processor, recorder)
             if recorder is not None:
                 recorder.write_frame(frame)
                 # Cleared by the solve that honours it (this frame may be dropped unsolved).
@@ -392,7 +398,8 @@ class Daemon:
                 self._error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
-            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder)
+            disp = self.rezero.displacements(data)
+            item = _Item(frame, reasons, data, timings, time.perf_counter(), cold, recorder, disp)
             if two_stage:
                 self._mid.put(item, block=cam.lossless, stop=self._stop)
             else:
@@ -435,12 +442,17 @@ class Daemon:
                 with self._proc_lock:
                     self.processor.set_reference(frames)
             self._ref_frames = frames
+            self.rezero.tare(self.processor, frames[-1].t)
             if self.recorder is not None:
                 self.recorder.write_reference(frames)
         except Exception as exc:
             self._error("reference", exc)
         finally:
             self._tare_requested = False
+
+    def set_auto_zero(self, enabled: bool) -> None:
+        """Turn re-zeroing on or off (control request ``set_auto_zero``)."""
+        self.rezero.set_enabled(enabled)
 
     def request_tare(self) -> None:
         """Capture a new reference from the next untouched frames."""
@@ -501,6 +513,7 @@ class Daemon:
             ):
                 if problem:
                     reasons.append(problem)
+            self.rezero.observe(item.frame, contact, est.net_force, reasons, item.displacements)
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             dp = getattr(item.data, "dp", None)
             if dp is None:
@@ -628,6 +641,7 @@ class Daemon:
         )
         self._recording_fault_counted = False
         self._cold_next = True
+        self.rezero.recording_started()
         self.recorder = rec
 
 

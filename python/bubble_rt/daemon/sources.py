@@ -240,6 +240,8 @@ class CameraSource(ThreadedSource):
     #: and fitted mesh, which the daemon then uses; empty / None for every other source.
     recorded_settings: str = ""
     recorded_mesh: Any = None
+    #: ... and its re-zero steps (bubble_rt.daemon.rezero), applied instead of deciding.
+    recorded_rezero: list[Any] | None = None
 
     def __init__(self, lossless: bool = False) -> None:
         super().__init__()
@@ -566,6 +568,7 @@ class ReplayCamera(IterableCamera):
         if recorded:
             self.recorded_settings = getattr(rec, "settings_toml", "")
             self.recorded_mesh = getattr(rec, "mesh", None)
+            self.recorded_rezero = list(getattr(rec, "rezero", []))
         self._report_losses(rec, report)
 
     def _report_losses(self, rec: Any, report: Any) -> None:

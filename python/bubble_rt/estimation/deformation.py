@@ -235,6 +235,8 @@ class Tracker(Protocol):
 
     def set_reference(self, reference: Reference) -> None: ...
 
+    def set_offset(self, offset: NDArray[np.float64] | None) -> None: ...
+
 
 #: (mesh, camera, reference, settings) -> Tracker
 TrackerFactory = Callable[[Mesh, Camera, Reference, FlowSettings], Tracker]
@@ -288,6 +290,18 @@ class NodeTracker:
     def set_reference(self, reference: Reference) -> None:
         """Measure against a new reference from now on (tare)."""
         self.reference = reference
+        self.reset_history()
+
+    def set_offset(self, offset: NDArray[np.float64] | None) -> None:
+        """Measure displacements from the reference nodes moved by ``offset`` (N x 3, m; None:
+        from the mesh itself): the daemon's re-zeroing follows the untouched membrane's slow
+        drift (a warmer gas bulges it) without refitting the mesh."""
+        base = np.array(self.mesh.vertices, dtype=np.float64)
+        if offset is not None:
+            off = np.asarray(offset, dtype=np.float64)
+            if off.shape == base.shape and np.isfinite(off).all():
+                base = base + off
+        self.x_ref = base
         self.reset_history()
 
     def reset_history(self) -> None:

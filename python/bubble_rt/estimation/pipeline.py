@@ -277,6 +277,18 @@ class Pipeline:
         self.estimator = self._build_estimator()
         self._build_tracker()
 
+    def follow_reference(self, reference: Reference, offset: Any = None) -> bool:
+        """Re-zero (the daemon, a few ms): from the next frame on, measure dp against
+        ``reference.pressure_pa``, the flow against ``reference.rgb`` and the displacements
+        from the mesh nodes moved by ``offset`` (N x 3, m; None: not moved). The mesh and the
+        estimator (linearised about the last ``set_reference``) stay. False (nothing changed)
+        for kinds that read frames themselves."""
+        if not self.kind.tracked or self.tracker is None:
+            return False
+        self.tracker.set_reference(reference)
+        self.tracker.set_offset(offset)
+        return True
+
     @property
     def params(self) -> tuple[str, ...]:
         """The ``[estimator]`` keys ``reconfigure`` accepts for this kind."""

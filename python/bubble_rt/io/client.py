@@ -113,6 +113,10 @@ class Controller:
     def tare(self) -> None:
         self.request("tare")
 
+    def set_auto_zero(self, enabled: bool) -> None:
+        """Turn re-zeroing (following the drift while untouched) on or off."""
+        self.request("set_auto_zero", enabled=enabled)
+
     def record_start(self, path: str = "", overwrite: bool = False) -> str:
         """Start recording to ``path`` on the daemon's host (an existing file is refused
         unless ``overwrite``); returns the path being written."""

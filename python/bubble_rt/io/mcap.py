@@ -18,6 +18,9 @@ topic                           schema                        content
 /bubble_rt/reference/{rgb,depth,pressure,wrench}              the reference (untouched) frames
 /bubble_rt/force                bubble_rt.v1.ForceFrame       estimator output
 /bubble_rt/status               bubble_rt.v1.Status           daemon status
+/bubble_rt/rezero               bubble_rt.v1.RezeroEvent      a re-zero step (the reference
+                                                              followed the drift; a replay
+                                                              applies the same steps)
 ==============================  ============================  =================================
 
 Size: chunks are zstd-compressed, which keeps the raw float depth lossless at about 0.14 MB a
@@ -80,6 +83,7 @@ TOPIC_WRENCH = "/bubble_rt/wrench"
 TOPIC_REF_WRENCH = "/bubble_rt/reference/wrench"
 TOPIC_FORCE = "/bubble_rt/force"
 TOPIC_STATUS = "/bubble_rt/status"
+TOPIC_REZERO = "/bubble_rt/rezero"
 #: What the estimate depended on besides the frames: the daemon's effective configuration
 #: (estimator, flow, solver settings and calibration, live set_params included) as a
 #: ControlReply's ``config_toml``, written when recording starts (and after a set_params).
@@ -95,6 +99,7 @@ _TYPES: dict[str, Any] = {
     "bubble_rt.v1.ForceFrame": pb.ForceFrame,
     "bubble_rt.v1.Status": pb.Status,
     "bubble_rt.v1.ControlReply": pb.ControlReply,
+    "bubble_rt.v1.RezeroEvent": pb.RezeroEvent,
 }
 
 
@@ -511,6 +516,8 @@ class McapRecording:
         self.settings_toml = ""
         #: Frame indices the daemon published forces for (the frames it solved).
         self.published: set[int] = set()
+        #: The daemon's re-zero steps (RezeroEvent messages, in recorded order).
+        self.rezero: list[Any] = []
         self._reference: list[Frame] = []
         self._n = 0
         self.report = ReadReport(str(self.path))
@@ -532,6 +539,8 @@ class McapRecording:
                 self.settings_toml = msg.config_toml
             elif topic == TOPIC_FORCE:
                 self.published.add(int(msg.frame_index))
+            elif topic == TOPIC_REZERO:
+                self.rezero.append(msg)
         self.has_camera_info = has_camera_info
         self.frames_indexed = self.report.topic_indexed.get(TOPIC_PRESSURE)
         if self._n == 0 and self.report.topic_messages.get(TOPIC_REF_PRESSURE, 0) == 0:

@@ -435,6 +435,12 @@ class StatusData:
     #: Why the recording stopped writing ("" while fine or not recording).
     recording_error: str = ""
     recording_dropped: int = 0
+    #: Re-zeroing on; pressure drift followed since the last tare (Pa); capture time of the
+    #: first frame after the last re-zero (Unix ns, 0: none); re-zeros so far.
+    auto_zero: bool = False
+    drift_pa: float = 0.0
+    last_rezero_ns: int = 0
+    rezero_count: int = 0
 
 
 def decode_status(payload: bytes | Any) -> StatusData:
@@ -474,6 +480,10 @@ def decode_status(payload: bytes | Any) -> StatusData:
         uptime_s=msg.uptime_s,
         recording_error=msg.recording_error,
         recording_dropped=msg.recording_dropped,
+        auto_zero=msg.auto_zero,
+        drift_pa=msg.drift_pa,
+        last_rezero_ns=msg.last_rezero_ns,
+        rezero_count=msg.rezero_count,
     )
 
 
@@ -482,7 +492,7 @@ def make_request(kind: str, **fields: Any) -> Any:
     """A ControlRequest of the given kind (one of :data:`REQUESTS`).
 
     ``set_params`` takes keyword parameters from :data:`PARAM_NAMES`; ``record_start`` takes
-    ``path``.
+    ``path``; ``set_auto_zero`` takes ``enabled``.
     """
     if kind not in REQUESTS:
         raise ProtocolError(f"unknown request {kind!r}; expected one of {', '.join(REQUESTS)}")
@@ -498,6 +508,8 @@ def make_request(kind: str, **fields: Any) -> Any:
     elif kind == "record_start":
         req.record_start.path = str(fields.get("path", "") or "")
         req.record_start.overwrite = bool(fields.get("overwrite", False))
+    elif kind == "set_auto_zero":
+        req.set_auto_zero.enabled = bool(fields.get("enabled", True))
     else:
         getattr(req, kind).SetInParent()
     return req

@@ -3,8 +3,9 @@
 Every stage draws from its own random stream, seeded by (scene seed, effect name, sample
 index), so naming one effect never changes another's noise and the same scene and seed give
 identical output. What stays fixed across frames (where the depth holes sit, the exposure
-drift's phase) comes from a stream of its own. The physics effects ("friction", "gas_compression") are settings handed to
-the physics, not stages here; "oracle" replaces rendering (see simulator.py).
+drift's phase) comes from a stream of its own. The physics effects ("friction", "gas_compression", and the slow gas drift
+"gas_temperature_drift" / "gas_leak" through :func:`gas_scale`) are settings handed to the
+physics, not stages here; "oracle" replaces rendering (see simulator.py).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from bubble_rt.sim import scene
 
 #: Offset of the sample index used for reference (tare) frames, so they never share a stream
 #: with trajectory frames.
@@ -252,6 +255,63 @@ def _phase(rng: np.random.Generator) -> float:
     return float(rng.uniform(0, 2 * np.pi))
 
 
+# ---------------------------------------------------------------------- slow drift
+# The slow-drift effects read *drift time*: scene time times ``rates.time_scale``, so an hour of
+# drift plays in a minute of frames at ``time_scale = 60``. The membrane and the contact still
+# move at scene speed; only these effects are compressed.
+def illumination_ramp(p: dict[str, float], t_drift: float) -> float:
+    """How far the LEDs have settled at drift time ``t_drift`` (s): 0 at the start, tending to
+    1 with time constant ``settle_s`` (0: settled at once)."""
+    tau = p["settle_s"]
+    if t_drift <= 0:
+        return 0.0
+    return 1.0 if tau <= 0 else float(1.0 - np.exp(-t_drift / tau))
+
+
+def illumination_drift(
+    rgb: NDArray[np.uint8], p: dict[str, float], rng: np.random.Generator, t: float
+) -> NDArray[np.uint8]:
+    """LEDs warming up: the image gain falls by ``gain_loss`` (a fraction) and a flat offset of
+    ``offset`` levels (8-bit, stray light and black level) builds up, both settling as
+    :func:`illumination_ramp` at drift time ``t`` (s). Deterministic: no random draw."""
+    import cv2
+
+    r = illumination_ramp(p, t)
+    if r == 0.0:
+        return rgb
+    gain = max(1.0 - p["gain_loss"] * r, 0.0)
+    return np.asarray(cv2.convertScaleAbs(rgb, alpha=gain, beta=p["offset"] * r))
+
+
+def gas_temperature_k(p: dict[str, float], t_drift: float) -> float:
+    """Gas temperature (K) at drift time ``t_drift`` (s): ``temperature_k`` until ``start_s``,
+    then a linear ramp of ``kelvin`` over ``ramp_s``, then flat (the camera warming the air)."""
+    ramp = p["ramp_s"]
+    x = t_drift - p["start_s"]
+    frac = (1.0 if x > 0 else 0.0) if ramp <= 0 else min(max(x / ramp, 0.0), 1.0)
+    return float(p["temperature_k"] + p["kelvin"] * frac)
+
+
+def gas_amount(p: dict[str, float], t_drift: float) -> float:
+    """Gas left (fraction of the sealed amount) at drift time ``t_drift`` (s): a leak losing
+    ``fraction_per_hour`` of what is left each hour (exponential decay)."""
+    f = min(max(p["fraction_per_hour"], 0.0), 0.999)
+    return float((1.0 - f) ** (max(t_drift, 0.0) / 3600.0))
+
+
+def gas_scale(
+    temperature: dict[str, float] | None, leak: dict[str, float] | None, t_drift: float
+) -> float:
+    """The sealed gas's p V product relative to the seal (n T / n0 T0, the ideal gas law) at
+    drift time ``t_drift`` (s); None: that effect is not named."""
+    s = 1.0
+    if temperature is not None:
+        s *= gas_temperature_k(temperature, t_drift) / max(temperature["temperature_k"], 1e-9)
+    if leak is not None:
+        s *= gas_amount(leak, t_drift)
+    return s
+
+
 # ---------------------------------------------------------------------- series stages
 def pressure_noise(
     values: NDArray[np.float64], p: dict[str, float], rng: np.random.Generator
@@ -287,12 +347,17 @@ IMAGE_STAGES: dict[str, tuple[str, Callable[..., Any]]] = {
     "depth_jumps": ("depth", depth_jumps),
     "rgb_noise": ("rgb", rgb_noise),
     "exposure_drift": ("rgb", exposure_drift),
+    "illumination_drift": ("rgb", illumination_drift),
 }
+#: Image stages that read drift time (scene time times ``rates.time_scale``).
+DRIFT_TIME_STAGES = ("illumination_drift",)
+#: Effects that change the gas of the physics per frame (``gas_scale``).
+GAS_DRIFT_EFFECTS = scene.GAS_DRIFT_EFFECTS
 PRESSURE_STAGES: dict[str, Callable[..., Any]] = {
     "pressure_noise": pressure_noise,
     "pressure_quantization": pressure_quantization,
 }
-PHYSICS_EFFECTS = ("friction", "gas_compression")
+PHYSICS_EFFECTS = ("friction", "gas_compression", *GAS_DRIFT_EFFECTS)
 
 
 def apply_image_effects(
@@ -302,13 +367,16 @@ def apply_image_effects(
     t: float,
     rgb: NDArray[np.uint8] | None,
     depth: NDArray[np.float32] | None,
+    time_scale: float = 1.0,
 ) -> tuple[NDArray[np.uint8] | None, NDArray[np.float32] | None]:
-    """Run the named image stages (only those, in IMAGE_STAGES order) on one frame's images."""
+    """Run the named image stages (only those, in IMAGE_STAGES order) on one frame's images.
+    ``t``: scene time (s); the DRIFT_TIME_STAGES see ``t * time_scale``."""
     named = dict(effects)
     for name, (target, fn) in IMAGE_STAGES.items():
         if name not in named:
             continue
         p = dict(named[name])
+        t_stage = t * time_scale if name in DRIFT_TIME_STAGES else t
         # exposure_drift's phase comes from stream 0 so it is the same for every frame.
         rng = effect_rng(seed, name, 0 if name == "exposure_drift" else index)
         if target == "depth" and depth is not None:
@@ -320,5 +388,5 @@ def apply_image_effects(
             else:
                 depth = fn(depth, p, rng, t)
         elif target == "rgb" and rgb is not None:
-            rgb = fn(rgb, p, rng, t)
+            rgb = fn(rgb, p, rng, t_stage)
     return rgb, depth

@@ -441,6 +441,18 @@ class MembraneSim:
         self._reference = state
         return state
 
+    def set_gas_scale(self, scale: float) -> None:
+        """Scale the sealed gas's p V product (the amount times the temperature, n T / n0 T0)
+        for the following solves: a warmer gas or a leak (``bubble_rt.sim.effects.gas_scale``).
+        The membrane and the chamber then find their equilibrium at the new gas state (the
+        dome's volume change included). No effect on an incompressible (constant-gauge) gas."""
+        _ = self.reference
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"gas scale must be positive and finite, got {scale}")
+        if self.gas.compressible:
+            V0 = self._V0 + self.gas.chamber_volume_m3
+            self._C = (self.gas.atmospheric_pa + self.gas.gauge_pressure_pa) * V0 * scale
+
     def reset_to_reference(self) -> None:
         """Forget the trajectory: the next solve starts from the untouched reference."""
         _ = self.reference

@@ -21,6 +21,9 @@ from typing import Any
 
 from bubble_rt.sensor import PROFILES, SIM_BUBBLE, BubblePhysics
 
+#: Effects that change the sealed gas per frame (``bubble_rt.sim.effects.gas_scale``).
+GAS_DRIFT_EFFECTS = ("gas_temperature_drift", "gas_leak")
+
 #: Every effect a scene may name, with its parameters and their defaults.
 EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
     # Physics effects (change the simulated state).
@@ -61,6 +64,21 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
     # between horizontal neighbours as on the D405.
     "rgb_noise": {"sigma": 2.7, "channel_corr": 0.5, "h_corr": 0.24},
     "exposure_drift": {"amplitude": 0.08, "period_s": 6.0},
+    # Slow drift (docs/simulator.md "Drift"), read in drift time (scene time x
+    # rates.time_scale). illumination_drift: LED warm-up, the gain falls by gain_loss (fraction)
+    # and an offset of offset levels builds up, settling with time constant settle_s (s).
+    "illumination_drift": {"gain_loss": 0.05, "offset": 3.0, "settle_s": 900.0},
+    # gas_temperature_drift: the sealed air warms from temperature_k (K) by kelvin (K), a
+    # linear ramp over ramp_s (s) from start_s (s); the pressure follows the ideal gas law with
+    # the membrane's volume change (the physics solves each frame at the new gas state).
+    "gas_temperature_drift": {
+        "kelvin": 3.0,
+        "ramp_s": 3600.0,
+        "start_s": 0.0,
+        "temperature_k": 296.15,
+    },
+    # gas_leak: the sealed air loses fraction_per_hour of its amount each hour.
+    "gas_leak": {"fraction_per_hour": 0.002},
     # Pressure sensor effects.
     "pressure_noise": {"sigma_pa": 5.0},
     "pressure_quantization": {"step_pa": 1.0},
@@ -96,10 +114,14 @@ class SensorSpec:
 
 @dataclass(frozen=True)
 class RatesSpec:
-    """camera_hz: camera frame rate; pressure_hz: pressure sensor reading rate (Hz)."""
+    """camera_hz: camera frame rate; pressure_hz: pressure sensor reading rate (Hz);
+    time_scale: drift seconds per scene second, the time compression of the slow-drift
+    effects (gas temperature, leak, illumination: 60 plays an hour of drift in a minute;
+    the indenter and the membrane still move at scene speed)."""
 
     camera_hz: float = 30.0
     pressure_hz: float = 100.0
+    time_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -239,6 +261,12 @@ class Scene:
             "friction": self.params("friction") if self.has("friction") else None,
             "gas": self.has("gas_compression"),
         }
+        # The gas drift changes the physics; named only when present, so other scenes keep
+        # their cache entries.
+        drift = {n: self.params(n) for n in GAS_DRIFT_EFFECTS if self.has(n)}
+        if drift:
+            payload["gas_drift"] = drift
+            payload["time_scale"] = self.rates.time_scale
         blob = json.dumps(payload, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:32]
 
@@ -384,10 +412,11 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     )
 
     rd = _table(data, "rates")
-    _no_unknown(rd, ("camera_hz", "pressure_hz"), "rates.")
+    _no_unknown(rd, ("camera_hz", "pressure_hz", "time_scale"), "rates.")
     rates = RatesSpec(
         camera_hz=_num(rd, "camera_hz", "rates.", 30.0, positive=True),
         pressure_hz=_num(rd, "pressure_hz", "rates.", 100.0, positive=True),
+        time_scale=_num(rd, "time_scale", "rates.", 1.0, positive=True),
     )
 
     pd = _table(data, "physics")
@@ -414,11 +443,23 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     effects = _parse_effects(data.get("effects", []))
     if "oracle" in dict(effects) and any(
         n in dict(effects)
-        for n in ("depth_noise", "depth_dropouts", "depth_jumps", "rgb_noise", "exposure_drift")
+        for n in (
+            "depth_noise",
+            "depth_dropouts",
+            "depth_jumps",
+            "rgb_noise",
+            "exposure_drift",
+            "illumination_drift",
+        )
     ):
         raise SceneError(
             "effects: 'oracle' renders no image, so it cannot be combined with image effects"
         )
+    for n in GAS_DRIFT_EFFECTS:
+        if n in dict(effects) and "gas_compression" not in dict(effects):
+            raise SceneError(
+                f"effects.{n}: the gas drifts only when it is sealed; name 'gas_compression' too"
+            )
     return Scene(
         name=name,
         trajectory=trajectory,

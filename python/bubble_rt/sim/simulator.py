@@ -225,7 +225,20 @@ class Simulator:
             "converged": np.empty(F, bool),
             "iterations": np.empty(F, np.int32),
         }
+        gas_drift = {n: sc.params(n) for n in effects.GAS_DRIFT_EFFECTS if sc.has(n)}
+        for n in gas_drift:
+            self.stages_run.add(n)
         for i in range(F):
+            if gas_drift:
+                # The gas law at frame i's drift time: the solve finds the membrane and the
+                # chamber pressure at the warmer (or leaked) gas state.
+                sim.set_gas_scale(
+                    effects.gas_scale(
+                        gas_drift.get("gas_temperature_drift"),
+                        gas_drift.get("gas_leak"),
+                        i / sc.rates.camera_hz * sc.rates.time_scale,
+                    )
+                )
             st = sim.solve(ind, poses[i])
             out["vertices"][i] = _state_array(st, "vertices")
             out["contact_forces"][i] = _state_array(st, "contact_forces")
@@ -335,7 +348,9 @@ class Simulator:
         for name in effects.IMAGE_STAGES:
             if sc.has(name):
                 self.stages_run.add(name)
-        return effects.apply_image_effects(sc.effects, sc.seed, index, t, r.rgb, r.depth)
+        return effects.apply_image_effects(
+            sc.effects, sc.seed, index, t, r.rgb, r.depth, time_scale=sc.rates.time_scale
+        )
 
     def frames(self, loop: bool = False) -> Iterator[Frame]:
         """The scene's frames in order (``loop=True``: repeat forever, times keep increasing,
