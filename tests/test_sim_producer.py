@@ -190,3 +190,31 @@ def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_pat
         assert np.array_equal(r.rgb, g.rgb) and np.array_equal(r.depth, g.depth)
         assert r.pressure_pa == g.pressure_pa
         assert np.allclose(r.truth.net_force, g.truth.net_force)
+
+
+def test_a_pass_cut_short_by_a_stop_is_never_stored_and_a_partial_one_is_ignored(
+    tmp_path, monkeypatch
+):
+    """A daemon stopped mid-pass must not leave a part of a pass in the cache: replayed, it
+    would loop over the scene's first frames only (the demo never pressing)."""
+    from bubble_rt.daemon.sim_producer import load_pass, pass_cache_path, store_pass
+    from bubble_rt.daemon.sources import SimCamera
+    from test_sim_truth_publish import TINY_SCENE
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY_SCENE)
+    cam = SimCamera(str(scene), lossless=True)
+    cam.prepare()
+    cam.start()
+    try:
+        part = [cam.output.get(60.0) for _ in range(3)]  # half of the 6-frame pass
+    finally:
+        cam.stop()
+    path = pass_cache_path(cam.producer.sim)
+    assert path is not None and all(f is not None for f in part)
+    time.sleep(1.0)  # the store would run in a background thread: give it the chance
+    assert not path.exists()
+    store_pass(path, part)  # a partial pass written by an older version
+    assert path.exists() and load_pass(path, 6) is None
+    assert SimCamera(str(scene), lossless=True).cached_pass is None

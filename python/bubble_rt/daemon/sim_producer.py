@@ -316,14 +316,17 @@ def pass_cache_path(sim: Any) -> Path | None:
     return None if key is None else _diskcache.cache_dir() / f"simpass-{key}"
 
 
-def load_pass(path: Path) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
+def load_pass(
+    path: Path, n_frames: int
+) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
     """A cached pass as (fields, arrays) per frame, the images memory-mapped from the files
-    (read as the frames are used, copy-on-write), or None when absent or unreadable."""
+    (read as the frames are used, copy-on-write), or None when absent, unreadable or not the
+    scene's whole pass of ``n_frames`` frames."""
     try:
         fields = json.loads((path / "fields.json").read_text())
         rgb = np.load(path / "rgb.npy", mmap_mode="c")
         depth = np.load(path / "depth.npy", mmap_mode="c")
-        if not (len(rgb) == len(depth) == len(fields)):
+        if not (len(rgb) == len(depth) == len(fields) == n_frames):
             return None
         return [(f, {"rgb": rgb[k], "depth": depth[k]}) for k, f in enumerate(fields)]
     except (OSError, ValueError, KeyError):

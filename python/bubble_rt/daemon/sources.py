@@ -425,7 +425,9 @@ class SimCamera(IterableCamera):
         )
         # With prerender, a pass rendered by an earlier run is read from the disk cache.
         self._pass_path = sp.pass_cache_path(sim) if prerender else None
-        self.cached_pass = None if self._pass_path is None else sp.load_pass(self._pass_path)
+        self.cached_pass = (
+            None if self._pass_path is None else sp.load_pass(self._pass_path, self._n_frames)
+        )
         self._prerender = prerender
         self._pass_frames: list[Frame] = []
         self._passes = 0
@@ -466,8 +468,10 @@ class SimCamera(IterableCamera):
             if self._prerender:
                 self._pass_frames.append(f)
             yield replace(f, index=f.index + offset)
-        self._complete = self._prerender
-        if self._prerender and self._pass_path is not None:  # the next runs read it from disk
+        # Only a whole pass is kept: a stop mid-pass (the daemon ending) leaves a part of one,
+        # which replayed would loop over its first frames only.
+        self._complete = self._prerender and len(self._pass_frames) == self._n_frames
+        if self._complete and self._pass_path is not None:  # the next runs read it from disk
             threading.Thread(
                 target=sp.store_pass,
                 args=(self._pass_path, list(self._pass_frames)),
