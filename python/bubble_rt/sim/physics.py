@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -819,90 +820,22 @@ class MembraneSim:
             if prob.lam is not None and res < _LAG_REFRESH_N:
                 # Refresh the lagged normal force inside the iteration once near equilibrium:
                 # cheaper than re-solving from scratch after each lag update.
-                lam_new, normals = self._normal_forces(x, prob)
-                scale = max(float(lam_new.max(initial=0.0)), 1e-12)
-                lag_settled = (
-                    float(np.abs(lam_new - prob.lam).max(initial=0.0)) / scale
-                    < self.contact_settings.lag_tolerance
-                )
+                lag_settled = self._lag_settled(x, prob)
                 if not lag_settled:
-                    prob.lam = lam_new
-                    prob.tangent = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]
                     E, g, dV, blocks = self._gradient(x, prob)
                     res = float(np.abs(g).max())
             if res <= ns.tolerance_n and lag_settled:
                 return x, True, it - 1, res
-            V = float(self._sys.volume_grad(x)[0])
-            _, dE, d2E = self._gas_terms(V, prob)
-            bc, cc, cpl = blocks
-            B_psd = self._zero_blocks if bc is None else bc.reshape(self._M, 9)
-            B_all = B_psd if bc is None or cc is None else (bc + cc).reshape(self._M, 9)
-            d = None
-            project = False
-            # Inexact Newton: a loose solve far from equilibrium, a tight one near it.
-            rtol = min(1e-2, max(ns.cg_tolerance, 0.1 * res))
-            if self._have_factor and ns.reuse_factorization:
-                # The last factorisation preconditions CG on the current exact Hessian; it is
-                # refreshed only when CG is slow or the Hessian is not positive definite.
-                self._sys.assemble(x, dE, B_all, 0.0, False)
-                d = self._pcg(g, dV, d2E, rtol, cpl)
-                if d is not None and float(np.sum(d * g)) >= 0:
-                    d = None
-            # Exact Hessian first; if it is not positive definite, PSD-projected parts.
-            for project, shift, B in (
-                (False, 0.0, B_all),
-                (False, 0.0, B_psd),
-                (True, 0.0, B_psd),
-                (True, 1e-3 * self.material.mu_t, B_psd),
-            ):
-                if d is not None:
-                    break
-                self._have_factor = False
-                self.stats["factorizations"] += 1
-                if not self._sys.factorize(x, dE, B, shift, project):
-                    continue
-                if self._sys.nonpositive_pivots() > 0:
-                    continue
-                self._have_factor = True
-                d = self._direction(g, dV, d2E)
-                if cpl is not None and B is B_all:
-                    # The factorisation has the sample coupling lumped; CG on the exact Hessian
-                    # restores the Newton step. Without it the lumped direction stays: its
-                    # matrix is positive definite here, so it still descends.
-                    n_cg = _COUPLED_CG_FACTOR * ns.cg_max_iterations
-                    d_exact = self._pcg(g, dV, d2E, rtol, cpl, n_cg)
-                    if d_exact is not None and float(np.sum(d_exact * g)) < 0:
-                        d = d_exact
-                if float(np.sum(d * g)) < 0:
-                    break
-                d = None
+            d, project = self._newton_direction(x, g, dV, blocks, res, prob)
             if d is None:
                 return x, False, it, res
             big = float(np.linalg.norm(d, axis=1).max())
             if big > ns.max_step_m:
                 d *= ns.max_step_m / big
-            slope = float(np.sum(d * g))
-            alpha = 1.0
-            accepted = False
-            if -slope < 1e-11 * max(abs(E), 1e-6):
-                # Below the energy's round-off: judge steps by the residual instead.
-                while alpha > 1e-3:
-                    x_new = x + alpha * d
-                    _, g_new, _, _ = self._gradient(x_new, prob)
-                    if float(np.abs(g_new).max()) < (1 - 0.25 * alpha) * res:
-                        accepted = True
-                        break
-                    alpha *= 0.5
-            else:
-                while alpha > 1e-10:
-                    x_new = x + alpha * d
-                    if self._energy(x_new, prob) <= E + 1e-4 * alpha * slope:
-                        accepted = True
-                        break
-                    alpha *= 0.5
-            if not accepted:
+            step = self._line_search(x, d, g, E, res, prob)
+            if step is None:
                 return x, False, it, res
-            x = x_new
+            x, alpha = step
             self.stats["newton_iterations"] += 1
             E, g, dV, blocks = self._gradient(x, prob)
             res = float(np.abs(g).max())
@@ -910,6 +843,97 @@ class MembraneSim:
                 "newton %d: residual %.3g N, step %.3g, projected %s", it, res, alpha, project
             )
         return x, res <= ns.tolerance_n and lag_settled, ns.max_iterations, res
+
+    def _lag_settled(self, x: Array, prob: _Problem) -> bool:
+        """Whether the lagged normal force is within the lag tolerance of the one at x; when
+        it is not, ``prob`` takes the new one (and its tangent projectors)."""
+        assert prob.lam is not None
+        lam_new, normals = self._normal_forces(x, prob)
+        scale = max(float(lam_new.max(initial=0.0)), 1e-12)
+        settled = (
+            float(np.abs(lam_new - prob.lam).max(initial=0.0)) / scale
+            < self.contact_settings.lag_tolerance
+        )
+        if not settled:
+            prob.lam = lam_new
+            prob.tangent = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]
+        return settled
+
+    def _newton_direction(
+        self, x: Array, g: Array, dV: Array, blocks: Any, res: float, prob: _Problem
+    ) -> tuple[Array | None, bool]:
+        """A descent direction (None: none found) and whether the Hessian had to be
+        PSD-projected: CG preconditioned by the last factorisation, else a new factorisation
+        of the exact Hessian, falling back to PSD-projected parts."""
+        ns = self.newton
+        V = float(self._sys.volume_grad(x)[0])
+        _, dE, d2E = self._gas_terms(V, prob)
+        bc, cc, cpl = blocks
+        B_psd = self._zero_blocks if bc is None else bc.reshape(self._M, 9)
+        B_all = B_psd if bc is None or cc is None else (bc + cc).reshape(self._M, 9)
+        d = None
+        project = False
+        # Inexact Newton: a loose solve far from equilibrium, a tight one near it.
+        rtol = min(1e-2, max(ns.cg_tolerance, 0.1 * res))
+        if self._have_factor and ns.reuse_factorization:
+            # The last factorisation preconditions CG on the current exact Hessian; it is
+            # refreshed only when CG is slow or the Hessian is not positive definite.
+            self._sys.assemble(x, dE, B_all, 0.0, False)
+            d = self._pcg(g, dV, d2E, rtol, cpl)
+            if d is not None and float(np.sum(d * g)) >= 0:
+                d = None
+        # Exact Hessian first; if it is not positive definite, PSD-projected parts.
+        for project, shift, B in (
+            (False, 0.0, B_all),
+            (False, 0.0, B_psd),
+            (True, 0.0, B_psd),
+            (True, 1e-3 * self.material.mu_t, B_psd),
+        ):
+            if d is not None:
+                break
+            self._have_factor = False
+            self.stats["factorizations"] += 1
+            if not self._sys.factorize(x, dE, B, shift, project):
+                continue
+            if self._sys.nonpositive_pivots() > 0:
+                continue
+            self._have_factor = True
+            d = self._direction(g, dV, d2E)
+            if cpl is not None and B is B_all:
+                # The factorisation has the sample coupling lumped; CG on the exact Hessian
+                # restores the Newton step. Without it the lumped direction stays: its
+                # matrix is positive definite here, so it still descends.
+                n_cg = _COUPLED_CG_FACTOR * ns.cg_max_iterations
+                d_exact = self._pcg(g, dV, d2E, rtol, cpl, n_cg)
+                if d_exact is not None and float(np.sum(d_exact * g)) < 0:
+                    d = d_exact
+            if float(np.sum(d * g)) < 0:
+                break
+            d = None
+        return d, project
+
+    def _line_search(
+        self, x: Array, d: Array, g: Array, E: float, res: float, prob: _Problem
+    ) -> tuple[Array, float] | None:
+        """Backtracking along d: Armijo on the energy, or, where the slope is below the
+        energy's round-off, a decrease of the residual. (x + alpha d, alpha), or None."""
+        slope = float(np.sum(d * g))
+        alpha = 1.0
+        if -slope < 1e-11 * max(abs(E), 1e-6):
+            # Below the energy's round-off: judge steps by the residual instead.
+            while alpha > 1e-3:
+                x_new = x + alpha * d
+                _, g_new, _, _ = self._gradient(x_new, prob)
+                if float(np.abs(g_new).max()) < (1 - 0.25 * alpha) * res:
+                    return x_new, alpha
+                alpha *= 0.5
+            return None
+        while alpha > 1e-10:
+            x_new = x + alpha * d
+            if self._energy(x_new, prob) <= E + 1e-4 * alpha * slope:
+                return x_new, alpha
+            alpha *= 0.5
+        return None
 
     def _pcg(
         self,
