@@ -381,12 +381,36 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
     if not isinstance(prof, str) or prof not in PROFILES:
         raise SceneError(f"profile: unknown sensor profile {prof!r}; known: {', '.join(PROFILES)}")
     bubble = PROFILES[prof].bubble
+    rd = _table(data, "rates")
+    _no_unknown(rd, ("camera_hz", "pressure_hz", "time_scale"), "rates.")
+    rates = RatesSpec(
+        camera_hz=_num(rd, "camera_hz", "rates.", 30.0, positive=True),
+        pressure_hz=_num(rd, "pressure_hz", "rates.", 100.0, positive=True),
+        time_scale=_num(rd, "time_scale", "rates.", 1.0, positive=True),
+    )
+    trajectory = _parse_trajectory(data.get("trajectory"))
+    t_end = trajectory.keyframes[-1].t
+    return Scene(
+        name=name,
+        trajectory=trajectory,
+        frames=_int(data, "frames", "", int(round(t_end * rates.camera_hz)) + 1, minimum=1),
+        seed=seed,
+        sensor=_parse_sensor(_table(data, "sensor"), bubble),
+        rates=rates,
+        physics=_parse_physics(_table(data, "physics"), bubble),
+        indenter=_parse_indenter(_table(data, "indenter")),
+        effects=_parse_scene_effects(data.get("effects", [])),
+        profile=prof,
+    )
 
-    sd = _table(data, "sensor")
-    _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture_seed"), "sensor.")
-    camera = sd.get("camera", bubble.camera)
+
+def _parse_sensor(sd: dict, bubble: BubblePhysics) -> SensorSpec:
+    """``[sensor]``: the camera preset and pose (the profile's unless given), the simulation
+    mesh's node count and the texture seed."""
     from bubble_rt.camera import Camera
 
+    _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture_seed"), "sensor.")
+    camera = sd.get("camera", bubble.camera)
     try:
         Camera.preset(camera)
     except (ValueError, TypeError) as exc:
@@ -404,26 +428,19 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         except (ValueError, TypeError) as exc:
             raise SceneError(f"sensor.camera_pose: {exc}") from exc
         pose = tuple(tuple(float(x) for x in r) for r in pose)
-    sensor = SensorSpec(
+    return SensorSpec(
         camera=camera,
         camera_pose=pose,
         sim_nodes=_int(sd, "sim_nodes", "sensor.", 2000, minimum=50),
         texture_seed=_int(sd, "texture_seed", "sensor.", 0),
     )
 
-    rd = _table(data, "rates")
-    _no_unknown(rd, ("camera_hz", "pressure_hz", "time_scale"), "rates.")
-    rates = RatesSpec(
-        camera_hz=_num(rd, "camera_hz", "rates.", 30.0, positive=True),
-        pressure_hz=_num(rd, "pressure_hz", "rates.", 100.0, positive=True),
-        time_scale=_num(rd, "time_scale", "rates.", 1.0, positive=True),
-    )
 
-    pd = _table(data, "physics")
-    pkeys = tuple(PhysicsSpec.__dataclass_fields__)
-    _no_unknown(pd, pkeys, "physics.")
+def _parse_physics(pd: dict, bubble: BubblePhysics) -> PhysicsSpec:
+    """``[physics]``: each key defaults to the profile's bubble (``PhysicsSpec.of``)."""
+    _no_unknown(pd, tuple(PhysicsSpec.__dataclass_fields__), "physics.")
     dflt = PhysicsSpec.of(bubble)
-    physics = PhysicsSpec(
+    return PhysicsSpec(
         gauge_pressure_pa=_num(pd, "gauge_pressure_pa", "physics.", dflt.gauge_pressure_pa, True),
         atmospheric_pa=_num(pd, "atmospheric_pa", "physics.", dflt.atmospheric_pa, True),
         chamber_volume_m3=_num(pd, "chamber_volume_m3", "physics.", dflt.chamber_volume_m3, True),
@@ -435,43 +452,32 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
         ),
     )
 
-    indenter = _parse_indenter(_table(data, "indenter"))
-    trajectory = _parse_trajectory(data.get("trajectory"))
-    rate = rates.camera_hz
-    t_end = trajectory.keyframes[-1].t
-    frames = _int(data, "frames", "", int(round(t_end * rate)) + 1, minimum=1)
-    effects = _parse_effects(data.get("effects", []))
-    if "oracle" in dict(effects) and any(
-        n in dict(effects)
-        for n in (
-            "depth_noise",
-            "depth_dropouts",
-            "depth_jumps",
-            "rgb_noise",
-            "exposure_drift",
-            "illumination_drift",
-        )
-    ):
+
+#: Effects that need rendered images (none may go with "oracle", which renders none).
+_IMAGE_EFFECTS = (
+    "depth_noise",
+    "depth_dropouts",
+    "depth_jumps",
+    "rgb_noise",
+    "exposure_drift",
+    "illumination_drift",
+)
+
+
+def _parse_scene_effects(spec: Any) -> tuple[tuple[str, tuple[tuple[str, float], ...]], ...]:
+    """``[effects]``, and the combinations that cannot work refused."""
+    effects = _parse_effects(spec)
+    named = dict(effects)
+    if "oracle" in named and any(n in named for n in _IMAGE_EFFECTS):
         raise SceneError(
             "effects: 'oracle' renders no image, so it cannot be combined with image effects"
         )
     for n in GAS_DRIFT_EFFECTS:
-        if n in dict(effects) and "gas_compression" not in dict(effects):
+        if n in named and "gas_compression" not in named:
             raise SceneError(
                 f"effects.{n}: the gas drifts only when it is sealed; name 'gas_compression' too"
             )
-    return Scene(
-        name=name,
-        trajectory=trajectory,
-        frames=frames,
-        seed=seed,
-        sensor=sensor,
-        rates=rates,
-        physics=physics,
-        indenter=indenter,
-        effects=effects,
-        profile=prof,
-    )
+    return effects
 
 
 def _parse_indenter(d: dict) -> IndenterSpec:
