@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import socket
 import threading
 from types import SimpleNamespace
 from typing import Any
@@ -13,7 +12,9 @@ from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
 from bubble_rt.frames import Frame
+from bubble_rt.io.client import Controller
 from bubble_rt.mesh import Mesh
+from waiting import ANY_PORT
 
 H, W = 24, 32
 P0 = 101325.0
@@ -26,22 +27,23 @@ def coarse_mesh() -> Mesh:
     return _MESH["m"]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def fake_config(**overrides: Any) -> DaemonConfig:
     base = {
-        "network.pub": f"tcp://127.0.0.1:{free_port()}",
-        "network.control": f"tcp://127.0.0.1:{free_port()}",
+        # Any free port: the daemon binds it and names it (Daemon.pub_address, .control_address).
+        "network.pub": ANY_PORT,
+        "network.control": ANY_PORT,
         "network.status_period_s": 0.2,
         "reference.frames": 3,
         "camera.stall_timeout_s": 0.3,
     }
     base.update(overrides)
     return DaemonConfig().with_overrides(**base)
+
+
+def status_of(d: Any) -> Any:
+    """The running daemon ``d``'s status, asked over its control socket."""
+    with Controller(d.control_address) as c:
+        return c.status()
 
 
 def make_frame(i: int, push: float = 0.0) -> Frame:

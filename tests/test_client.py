@@ -10,7 +10,8 @@ import pytest
 from bubble_rt.commands.echo import RateMeter, echo, format_line
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io.client import ControlError, Controller, Subscriber, control_address_for
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, free_port
+from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
+from waiting import nobody_listens
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -33,8 +34,8 @@ def test_control_address_for_tcp():
     assert control_address_for("ipc:///tmp/x") is None
 
 
-def test_controller_times_out_without_daemon():
-    with Controller(f"tcp://127.0.0.1:{free_port()}", timeout_s=0.2) as c:
+def test_controller_times_out_without_daemon(tmp_path):
+    with Controller(nobody_listens(tmp_path), timeout_s=0.2) as c:
         with pytest.raises(TimeoutError, match="no reply"):
             c.status()
         with pytest.raises(TimeoutError):  # the socket was reset and is usable again
@@ -95,8 +96,8 @@ def test_echo_stops_on_event(daemon):
     assert echo(daemon.pub_address, stop=stop, out=io.StringIO()) == 0
 
 
-def test_echo_gives_up_without_frames():
-    assert echo(f"tcp://127.0.0.1:{free_port()}", timeout_s=0.3, out=io.StringIO()) == 1
+def test_echo_gives_up_without_frames(tmp_path):
+    assert echo(nobody_listens(tmp_path), timeout_s=0.3, out=io.StringIO()) == 1
 
 
 def test_rate_meter():
@@ -143,7 +144,7 @@ def test_record_command_without_daemon_fails_cleanly(tmp_path):
     from bubble_rt.commands import record
 
     args = argparse.Namespace(
-        output=str(tmp_path / "x.mcap"), control=f"tcp://127.0.0.1:{free_port()}", duration=0.1
+        output=str(tmp_path / "x.mcap"), control=nobody_listens(tmp_path), duration=0.1
     )
     # Controller timeout is 5 s in the command; an absent daemon is reported, not raised.
     assert record.run(args) == 1

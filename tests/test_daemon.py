@@ -16,7 +16,8 @@ from bubble_rt.daemon.service import Daemon, DaemonError
 from bubble_rt.io import protocol
 from bubble_rt.io.client import ControlError, Controller, Subscriber
 from bubble_rt.mesh import Mesh, lumped_areas
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
+from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, status_of
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -34,25 +35,11 @@ def start(cfg=None, camera=None, **kw):
     return d, cam
 
 
-def wait_for(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
-
-
 @pytest.fixture
 def daemon():
     d, cam = start()
     yield d, cam
     d.stop()
-
-
-def status_of(d):
-    with Controller(d.control_address) as c:
-        return c.status()
 
 
 def test_frames_flow_with_mesh_and_timings(daemon):

@@ -240,7 +240,7 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
 def test_replay_of_a_bag_at_recorded_pace(tmp_path):
     from bubble_rt.daemon.sources import ReplayCamera
     from bubble_rt.io.rosbag import write_bag
-    from test_rosbag import small_frames
+    from recording_fakes import small_frames
 
     frames, cam = small_frames(12)
     bag = write_bag(tmp_path / "bag", frames, cam)
@@ -270,7 +270,7 @@ def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
 
     from bubble_rt.commands import serve
     from bubble_rt.io.rosbag import write_bag
-    from test_rosbag import small_frames
+    from recording_fakes import small_frames
 
     parser = argparse.ArgumentParser()
     serve.add_arguments(parser)

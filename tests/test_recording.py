@@ -2,14 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import textwrap
-import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +19,8 @@ from bubble_rt.io.mcap import (
     write_recording,
 )
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, make_frame
+from recording_fakes import killed_recording
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -74,33 +69,7 @@ def test_truncated_file_reads_up_to_last_chunk(tmp_path):
 
 
 def test_recording_survives_a_killed_process(tmp_path):
-    p = tmp_path / "crash.mcap"
-    script = textwrap.dedent(
-        f"""
-        import sys, time
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
-        from daemon_fakes import make_frame
-        from bubble_rt.camera import Camera
-        from bubble_rt.io.mcap import Recorder
-        rec = Recorder({str(p)!r}, Camera.d405(), chunk_size=1 << 30, flush_s=0.05)
-        for i in range(10):
-            rec.write_frame(make_frame(i))
-        time.sleep(0.5)  # the writer flushes its chunk
-        print("flushed", flush=True)
-        for i in range(10, 20):
-            rec.write_frame(make_frame(i))
-        time.sleep(60)
-        """
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=dict(os.environ)
-    )
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "flushed"
-        time.sleep(0.3)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+    p = killed_recording(tmp_path / "crash.mcap", frames=10, more=10)
     with pytest.warns(RecordingWarning, match="not closed"):
         got = list(McapRecording(p))
     assert len(got) >= 10
@@ -117,9 +86,7 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
     ).start()
     try:
         assert d.wait_ready(20)
-        end = time.monotonic() + 20
-        while d.frames_published < 30 and time.monotonic() < end:
-            time.sleep(0.05)
+        assert wait_for(lambda: d.frames_published >= 30, 20)
     finally:
         d.stop()
     rec = McapRecording(p)
@@ -134,9 +101,7 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
         processor_factory=FakeProcessor,
     ).start()
     try:
-        end = time.monotonic() + 30
-        while d3.frames_published < len(rec) and time.monotonic() < end:
-            time.sleep(0.05)
+        assert wait_for(lambda: d3.frames_published >= len(rec), 30)
         assert d3.frames_dropped == 0  # fast replay is lossless
     finally:
         d3.stop()

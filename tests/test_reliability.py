@@ -4,10 +4,6 @@ that cannot break the stream. One named test per reported run (see the issue's i
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
-import textwrap
 import threading
 import time
 import warnings
@@ -55,19 +51,12 @@ from daemon_fakes import (
     fake_config,
     make_frame,
 )
-from test_recordings import make_punyo
+from daemon_fakes import status_of as status
+from recording_fakes import killed_recording, make_punyo
+from waiting import ANY_PORT, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 CAM = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
-
-
-def wait_for(pred, timeout=10.0):  # type: ignore[no-untyped-def]
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def sim_like_camera(pressure_pa: float = P0, rate_hz: float = 100.0) -> IterableCamera:
@@ -96,11 +85,6 @@ def start_daemon(camera=None, pressure=None, **overrides):  # type: ignore[no-un
     ).start()
     assert d.wait_ready(20)
     return d
-
-
-def status(d):  # type: ignore[no-untyped-def]
-    with Controller(d.control_address) as c:
-        return c.status()
 
 
 def log_times(path):  # type: ignore[no-untyped-def]
@@ -161,7 +145,7 @@ def test_record_start_over_control_writes_a_readable_file(tmp_path):
 def test_killed_recording_is_read_with_a_not_closed_warning(tmp_path):
     """SIGKILL leaves no summary or footer: every reader here reads it and warns."""
     p = tmp_path / "crash.mcap"
-    kill_recorder(p)
+    killed_recording(p, frames=12)
     from mcap.reader import make_reader
 
     with open(p, "rb") as f, pytest.raises(Exception):  # noqa: B017 - the package's reader
@@ -176,36 +160,12 @@ def test_killed_recording_is_read_with_a_not_closed_warning(tmp_path):
     assert src.stats.errors.get("recording") == 1 and "not closed" in src.stats.last_error
 
 
-def kill_recorder(p: Path) -> None:
-    script = textwrap.dedent(
-        f"""
-        import sys, time
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
-        from daemon_fakes import make_frame
-        from bubble_rt.camera import Camera
-        from bubble_rt.io.mcap import Recorder
-        rec = Recorder({str(p)!r}, Camera.d405(), chunk_size=1 << 30, flush_s=0.05)
-        for i in range(12):
-            rec.write_frame(make_frame(i))
-        time.sleep(0.5)
-        print("flushed", flush=True)
-        time.sleep(60)
-        """
-    )
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "flushed"
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
-
-
 def test_recover_command_rewrites_a_killed_recording_as_a_finalised_file(tmp_path, capsys):
     from bubble_rt.cli import main
     from mcap.reader import make_reader
 
     p = tmp_path / "crash.mcap"
-    kill_recorder(p)
+    killed_recording(p, frames=12)
     out = tmp_path / "fixed.mcap"
     assert main(["recover", str(p), "-o", str(out)]) == 0
     text = capsys.readouterr().out
@@ -279,6 +239,22 @@ def test_record_to_a_device_is_refused_at_start():
         ).start()
 
 
+def test_recording_path_that_cannot_work_is_refused_naming_the_key(tmp_path):
+    """`[recording] path = "/etc/hostname/x.mcap"` was refused naming the path but not the key,
+    unlike every other configuration error."""
+    a_file = tmp_path / "hostname"
+    a_file.write_text("myhost\n")
+    with pytest.raises(DaemonError) as info:
+        Daemon(
+            fake_config(**{"recording.path": str(a_file / "x.mcap")}),
+            camera=ScriptedCamera(),
+            pressure=constant_pressure(),
+            processor_factory=FakeProcessor,
+        ).start()
+    assert str(info.value).startswith("recording.path: cannot record: ")
+    assert f"{a_file} is a file, not a folder" in str(info.value)
+
+
 def test_record_start_refuses_an_existing_file_unless_asked_to_overwrite(tmp_path):
     """A text file given to record_start became a 60 MB MCAP."""
     text = tmp_path / "notes.txt"
@@ -290,7 +266,7 @@ def test_record_start_refuses_an_existing_file_unless_asked_to_overwrite(tmp_pat
                 c.record_start(str(text))
             assert text.read_text() == "keep me\n" and d.recorder is None
             c.record_start(str(text), overwrite=True)
-            time.sleep(0.3)
+            assert wait_for(lambda: d.recorder is not None and d.recorder.written > 0)
             c.record_stop()
         assert text.read_bytes().startswith(b"\x89MCAP0\r\n")
     finally:
@@ -314,13 +290,13 @@ def test_record_start_refuses_a_fifo_without_blocking_the_control_thread(tmp_pat
     os.mkfifo(fifo)
     d = start_daemon()
     try:
+        # A control thread blocked on the FIFO would leave these requests unanswered: the
+        # Controller's timeout would raise TimeoutError, not the refusal.
         with Controller(d.control_address, timeout_s=2.0) as c:
-            t0 = time.monotonic()
             with pytest.raises(ControlError, match="not a regular file .*FIFO"):
                 c.record_start(str(fifo), overwrite=True)
             with pytest.raises(ControlError, match="FIFO"):
                 c.record_start(str(fifo))
-            assert time.monotonic() - t0 < 1.5
             assert wait_for(lambda: c.status().state == "running")
     finally:
         d.stop()
@@ -374,7 +350,8 @@ def test_bad_punyo_frame_is_skipped_counted_and_named(tmp_path, kind):
     d = start_daemon(src, **{"camera.pace": "fast", "camera.loop": False})
     try:
         assert wait_for(lambda: src.finished.is_set() and d.frames_published >= 1, 20)
-        time.sleep(0.3)
+        # Every good frame (4 of 5) went through, and the status says so.
+        assert wait_for(lambda: status(d).sources[src.name]["received"] == 4, 20)
         st = status(d)
     finally:
         d.stop()
@@ -395,7 +372,9 @@ def test_replay_with_a_bad_frame_never_restarts_from_frame_0(tmp_path):
     src.start()
     try:
         assert src.finished.wait(10)
-        time.sleep(0.6)  # the old code restarted every 0.5 s
+        # Time is the subject: nothing may be emitted for longer than the old code's 0.5 s
+        # restart period after the end.
+        time.sleep(0.6)
     finally:
         src.stop()
     assert emitted == [0, 2, 3, 4]
@@ -504,12 +483,11 @@ def test_non_mcap_or_empty_file_is_refused_at_once(tmp_path, content):
         closed_mcap(full, 3)
         content = full.read_bytes()[:100]
     p.write_bytes(content)
-    t0 = time.monotonic()
+    # Refused at construction and at start (a daemon "starting" forever would not raise).
     with pytest.raises(SourceError, match="empty file|not an MCAP file|no frame"):
         ReplayCamera(str(p))
     with pytest.raises(SourceError):
         Daemon(fake_config(**{"camera.source": f"replay:{p}"})).start()
-    assert time.monotonic() - t0 < 5
     with pytest.raises(McapFileError):
         McapRecording(p)
 
@@ -538,9 +516,11 @@ def test_set_params_out_of_range_is_refused_and_not_applied(param, value):
     d = start_daemon()
     try:
         with Controller(d.control_address) as c:
+            n = d.frames_published
             with pytest.raises(ControlError, match=f"set_params: {param} must be in"):
                 c.set_params(**{param: value})
-            time.sleep(0.2)
+            # Two frames finished since: a change queued by the request would be applied.
+            assert wait_for(lambda: d.frames_published >= n + 2)
             assert param not in d.processor.params
             assert f"{param} = {value!r}" not in c.get_config()
             assert c.status().state == "running"
@@ -639,11 +619,12 @@ def test_reference_pressure_comes_from_the_pressure_source_in_use():
     buf = PressureBuffer()
     stop = threading.Event()
 
-    def serial_like() -> None:  # readings start a little after the daemon
-        time.sleep(0.3)
+    def serial_like() -> None:
+        # Time is the scenario: a 100 Hz sensor whose readings start 0.3 s after the daemon.
+        stop.wait(0.3)
         while not stop.is_set():
             buf.push(time.time(), sensor)
-            time.sleep(0.01)
+            stop.wait(0.01)
 
     th = threading.Thread(target=serial_like, daemon=True)
     th.start()
@@ -685,13 +666,12 @@ def test_status_counts_faults_per_kind():
 
 def test_serve_refuses_to_record_over_an_existing_file(tmp_path, capsys):
     from bubble_rt.cli import main
-    from daemon_fakes import free_port
 
     root = tmp_path / "rec"
     make_punyo(root, n=3)
     keep = tmp_path / "run.mcap"
     keep.write_text("an earlier run\n")
-    net = ["--pub", f"tcp://127.0.0.1:{free_port()}", "--control", f"tcp://127.0.0.1:{free_port()}"]
+    net = ["--pub", ANY_PORT, "--control", ANY_PORT]
     args = ["serve", "--camera", f"replay:{root}", "--record", str(keep), "--duration", "0.1"]
     assert main(args + net) == 1
     assert "file exists" in capsys.readouterr().err and keep.read_text() == "an earlier run\n"

@@ -19,30 +19,8 @@ from bubble_rt.io.rosbag import (
     read_node_cloud,
     write_bag,
 )
+from recording_fakes import RAMP_PA_PER_S, T0, small_frames
 from synth_rgbd import dome_depth, texture
-
-T0 = 1_700_000_000.0
-RAMP_PA_PER_S = 300.0  # pressure ramp: interpolation between 100 Hz readings is exact
-
-
-def small_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[Frame], Camera]:
-    cam = Camera(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
-    d = dome_depth(cam).astype(np.float32)
-    if mm:  # 16UC1 carries whole millimetres
-        d = (np.round(d * 1000) / 1000).astype(np.float32)
-    rgb = texture(cam.height, cam.width)
-    frames = [
-        Frame(
-            rgb=np.roll(rgb, i, axis=1),
-            depth=d,
-            pressure_pa=101_300.0 + RAMP_PA_PER_S * (i / 30),
-            t=T0 + i / 30,
-            wrench=np.arange(6.0) + i if wrench else None,
-            index=i,
-        )
-        for i in range(n)
-    ]
-    return frames, cam
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

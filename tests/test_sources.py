@@ -26,17 +26,9 @@ from bubble_rt.daemon.sources import (
     parse_pressure_line,
 )
 from daemon_fakes import FakeSensor, make_frame
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def wait_for(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 # ------------------------------------------------------------------ slots and sync
