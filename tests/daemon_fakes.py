@@ -154,6 +154,14 @@ class FakeSensor:
     def write(self, data: bytes) -> None:
         os.write(self.master, data)
 
+    def unread(self) -> int:
+        """Bytes written that the port's reader has not read yet (the tty's input queue)."""
+        import fcntl
+        import struct
+        import termios
+
+        return int(struct.unpack("i", fcntl.ioctl(self.slave, termios.FIONREAD, b"\0" * 4))[0])
+
     def vanish(self) -> None:
         os.close(self.master)
         os.close(self.slave)

@@ -185,13 +185,15 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
             json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ch["id"]}]})
         )
         cls = message_class("foxglove.SceneUpdate", base64.b64decode(ch["schema"]))
-        while True:
+        # Four scenes sent: the view has written them to the recording too (checked below).
+        scenes = []
+        while len(scenes) < 4:
             op, data = ws.recv()
             if op == 2 and data[0] == 1:  # messageData
                 sub, _log_ns = struct.unpack_from("<IQ", data, 1)
                 assert sub == 7
-                scene = cls.FromString(data[13:])
-                break
+                scenes.append(cls.FromString(data[13:]))
+        scene = scenes[0]
         ws.close()
         # FakeProcessor: 5 interior nodes pushed along -z, in total 1..5 N.
         arrows = {e.id: e for e in scene.entities}["forces"].arrows
@@ -206,7 +208,6 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
         assert {fx.TOPIC_NET_FORCE, fx.TOPIC_TRUE_FORCE, fx.TOPIC_IMAGE, fx.TOPIC_STATUS} <= set(
             channels
         )
-        time.sleep(0.5)
     finally:
         d.stop()
     assert view.error == ""

@@ -191,7 +191,7 @@ def test_serial_good_and_bad_lines_counted(sensor):
 def test_serial_partial_line_reassembled(sensor):
     s, src, _ = sensor
     s.write(b"\n1013")
-    time.sleep(0.1)
+    assert wait_for(lambda: s.unread() == 0)  # the reader holds half a line
     s.write(b".0 hPa\n")
     assert wait_for(lambda: src.stats.received == 1)
     assert src.stats.n_errors == 0
@@ -213,8 +213,7 @@ def test_serial_vanished_port_is_reported_and_reopened(sensor):
     assert "serial port" in src.stats.last_error
     assert src.alive
     s.open()  # the sensor is plugged back in
-    assert wait_for(lambda: src.stats.connected)
-    time.sleep(0.1)
+    assert wait_for(lambda: src.stats.connected)  # opened (and its input flushed) again
     s.write(b"\n1002 hPa\n")
     assert wait_for(lambda: src.stats.received == 2)
     assert buf.at(time.time())[0] == pytest.approx(100200.0)
@@ -352,6 +351,8 @@ class FakeRS:
                 pass
 
             def wait_for_frames(self, timeout_ms):
+                # The device's own pacing (a frame period, a wait that times out): the
+                # sleeps stand for time passing on the camera, not for waiting on a test.
                 if rs.stall:
                     time.sleep(0.01)
                     raise RuntimeError("Frame didn't arrive within 1000")
