@@ -372,19 +372,14 @@ def SimCamera(
     repeats every loop).
     """
     from bubble_rt.sim import Simulator
+    from bubble_rt.sim.simulator import progress_bar
 
-    last = [-1]
+    bar = progress_bar(f"physics of scene {scene!r}")
 
     def progress(done: int, total: int) -> None:
-        step = (10 * done) // max(total, 1)
-        if step != last[0]:
-            last[0] = step
-            log.info(
-                "simulating the physics of scene %r (first run only, cached): %d/%d frames",
-                scene,
-                done,
-                total,
-            )
+        if done == 1:  # a log line too: the bar is drawn only on a terminal
+            log.info("simulating the physics of scene %r (first run only, cached)", scene)
+        bar(done, total)
 
     try:
         sim = Simulator(scene, progress=progress)
