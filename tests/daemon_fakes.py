@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
 from bubble_rt.frames import Frame
 from bubble_rt.io.client import Controller
@@ -169,6 +170,22 @@ class FakeSensor:
 
 def constant_pressure() -> tuple[ConstantPressure, None]:
     return ConstantPressure(P0), None
+
+
+def start(
+    cfg: DaemonConfig | None = None, camera: ScriptedCamera | None = None, **kw: Any
+) -> tuple[Daemon, ScriptedCamera]:
+    """A started daemon on the fakes (``fake_config()`` unless ``cfg``), ready, and its camera."""
+    cam = camera or ScriptedCamera()
+    d = Daemon(
+        cfg or fake_config(),
+        camera=cam,
+        pressure=constant_pressure(),
+        processor_factory=FakeProcessor,
+        **kw,
+    ).start()
+    assert d.wait_ready(20.0)
+    return d, cam
 
 
 def main() -> None:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import (
     ConstantPressure,
     IterableCamera,
@@ -25,7 +26,15 @@ from bubble_rt.daemon.sources import (
     pair_pressure,
     parse_pressure_line,
 )
-from daemon_fakes import FakeSensor, make_frame
+from bubble_rt.io.client import Subscriber
+from daemon_fakes import (
+    FakeProcessor,
+    FakeSensor,
+    ScriptedCamera,
+    fake_config,
+    make_frame,
+    status_of,
+)
 from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
@@ -469,3 +478,38 @@ def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=boom))
     with pytest.raises(SourceError, match="cannot load simulator scene 'nope'"):
         SimCamera("nope")
+
+
+def test_camera_and_serial_pressure_combine(tmp_path):
+    from daemon_fakes import FakeSensor
+
+    sensor = FakeSensor(str(tmp_path / "tty"))
+    cfg = fake_config(**{"pressure.source": f"serial:{sensor.link}", "pressure.reconnect_s": 0.05})
+    from bubble_rt.daemon.sources import make_pressure_source
+
+    cam = ScriptedCamera()
+    pressure = make_pressure_source(cfg.pressure, cam)
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            try:
+                sensor.write(b"1020.00 hPa\n")
+            except OSError:
+                return
+            stop.wait(0.01)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    d = Daemon(cfg, camera=cam, pressure=pressure, processor_factory=FakeProcessor).start()
+    try:
+        assert d.wait_ready(20)
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            f = next(sub.frames(count=1, timeout_s=5))
+        assert f.pressure_pa == pytest.approx(102000.0) and not f.degraded
+        st = status_of(d)
+        assert st.sources[f"serial:{sensor.link}"]["received"] > 0
+    finally:
+        stop.set()
+        d.stop()
+        sensor.vanish()

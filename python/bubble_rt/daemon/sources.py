@@ -372,14 +372,16 @@ def SimCamera(
     repeats every loop).
     """
     from bubble_rt.sim import Simulator
-    from bubble_rt.sim.simulator import progress_bar
 
-    bar = progress_bar(f"physics of scene {scene!r}")
+    bar: list[Callable[[int, int], None]] = []
 
     def progress(done: int, total: int) -> None:
-        if done == 1:  # a log line too: the bar is drawn only on a terminal
+        if not bar:  # the physics is being computed (not cached): one bar, and a log line
+            from bubble_rt.sim.simulator import progress_bar
+
             log.info("simulating the physics of scene %r (first run only, cached)", scene)
-        bar(done, total)
+            bar.append(progress_bar(f"physics of scene {scene!r}"))
+        bar[0](done, total)
 
     try:
         sim = Simulator(scene, progress=progress)
