@@ -8,8 +8,9 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.config import DaemonConfig
+from bubble_rt.config import ConfigError, DaemonConfig
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
 from bubble_rt.frames import Frame
@@ -186,6 +187,19 @@ def start(
     ).start()
     assert d.wait_ready(20.0)
     return d, cam
+
+
+def nested(dotted: str, value: Any) -> dict[str, Any]:
+    """``{"section": {"key": value}}`` for ``dotted`` = "section.key"."""
+    section, _, name = dotted.rpartition(".")
+    return {section: {name: value}} if section else {name: value}
+
+
+def refused_at_load(dotted: str, value: Any) -> ConfigError:
+    """The ConfigError of a configuration whose key ``dotted`` is ``value``."""
+    with pytest.raises(ConfigError) as ei:
+        DaemonConfig.from_dict(nested(dotted, value))
+    return ei.value
 
 
 def main() -> None:

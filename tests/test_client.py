@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import json
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -11,7 +13,7 @@ from bubble_rt.commands.echo import RateMeter, echo, format_line
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io.client import ControlError, Controller, Subscriber, control_address_for
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
-from waiting import nobody_listens
+from waiting import child_env, nobody_listens, wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -148,3 +150,52 @@ def test_record_command_without_daemon_fails_cleanly(tmp_path):
     )
     # Controller timeout is 5 s in the command; an absent daemon is reported, not raised.
     assert record.run(args) == 1
+
+
+@pytest.mark.timeout(240)
+# ------------------------------------------------------------------------------ record command
+def test_record_command_says_the_daemon_is_gone(tmp_path):
+    d = Daemon(
+        fake_config(),
+        camera=ScriptedCamera(),
+        pressure=constant_pressure(),
+        processor_factory=FakeProcessor,
+    ).start()
+    out = tmp_path / "r.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bubble_rt", "record", "-o", str(out)]
+        + ["--control", d.control_address],
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert d.wait_ready(20)
+        assert wait_for(lambda: d.recorder is not None, 30)
+        recorder = d.recorder
+        assert wait_for(lambda: recorder.written >= 10, 30)  # the command's recording runs
+    finally:
+        d.stop()  # the daemon goes away while `bubble-rt record` runs
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "is gone" in err and "Traceback" not in err
+    assert "was finalised" in err  # the daemon's stop finalised it
+
+
+@pytest.mark.timeout(240)
+def test_record_command_without_a_daemon_says_so(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "bubble_rt", "record", "-o", str(tmp_path / "r.mcap")]
+        + ["--control", nobody_listens(tmp_path)],
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1
+    assert "no daemon answers" in proc.stderr

@@ -3,13 +3,14 @@ or unplugged camera or stale pressure), in get_status and on the status topic.""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import pytest
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
-from bubble_rt.io.client import Subscriber
-from daemon_fakes import FakeProcessor, ScriptedCamera, fake_config, status_of
+from bubble_rt.io.client import Controller, Subscriber
+from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, status_of
 from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
@@ -76,3 +77,39 @@ def test_stale_pressure_marks_frames_degraded():
         assert wait_for(lambda: "pressure stale" in status_of(d).reason)
     finally:
         d.stop()
+
+
+class FailingProcessor(FakeProcessor):
+    """Every frame fails in stage one (a source that keeps producing unusable frames)."""
+
+    def stage1(self, frame):  # type: ignore[no-untyped-def]
+        raise ValueError("frame unusable: no valid depth")
+
+
+@pytest.mark.timeout(240)
+def test_source_that_keeps_failing_is_degraded_with_reason_and_counted_no_log_per_frame(caplog):
+    caplog.set_level(logging.WARNING, logger="bubble_rt.daemon")
+    d = Daemon(
+        fake_config(),
+        camera=ScriptedCamera(rate_hz=100.0),
+        pressure=constant_pressure(),
+        processor_factory=FailingProcessor,
+    ).start()
+    try:
+        assert d.wait_ready(20)
+
+        def counted_50_failures() -> bool:
+            return status_of(d).sources["daemon"]["error_counts"].get("deformation", 0) >= 50
+
+        assert wait_for(counted_50_failures, 20)
+        with Controller(d.control_address) as c:
+            st = c.status()
+        assert st.state == "degraded", st.reason
+        assert "cannot produce frames" in st.reason and "no valid depth" in st.reason
+        assert st.sources["daemon"]["error_counts"]["deformation"] >= 50
+        assert d.frames_published == 0
+    finally:
+        d.stop()
+    lines = [r for r in caplog.records if "deformation" in r.getMessage()]
+    assert 1 <= len(lines) <= 2, [r.getMessage() for r in lines]  # not one per frame
+    assert not any(r.exc_info for r in caplog.records)

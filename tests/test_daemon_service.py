@@ -14,6 +14,7 @@ from daemon_fakes import (
     ScriptedCamera,
     constant_pressure,
     fake_config,
+    refused_at_load,
     start,
     status_of,
 )
@@ -103,3 +104,18 @@ def test_drops_are_counted_when_processing_is_slow():
         assert wait_for(lambda: status_of(d).frames_dropped > 10)
     finally:
         d.stop()
+
+
+@pytest.mark.timeout(240)
+def test_huge_shutdown_timeout_is_refused_and_the_largest_stops_in_time():
+    e = refused_at_load("shutdown_timeout_s", 1e300)
+    assert e.key == "shutdown_timeout_s" and "[0.1, 600] s" in str(e)
+    cfg = fake_config(shutdown_timeout_s=600.0)
+    d = Daemon(
+        cfg, camera=ScriptedCamera(), pressure=constant_pressure(), processor_factory=FakeProcessor
+    ).start()
+    assert d.wait_ready(20)
+    # No OverflowError, and stop returns with every thread ended (waiting out the 600 s
+    # timeout would hit this test's own timeout).
+    d.stop()
+    assert d.alive_threads() == []

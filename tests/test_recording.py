@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
+from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import ReplayCamera
+from bubble_rt.io.client import Controller, Subscriber
 from bubble_rt.io.mcap import (
     TOPIC_DEPTH,
     TOPIC_RGB,
@@ -20,7 +23,7 @@ from bubble_rt.io.mcap import (
 )
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, make_frame
 from recording_fakes import killed_recording
-from waiting import wait_for
+from waiting import ANY_PORT, wait_for
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -111,3 +114,73 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
     assert len(common) >= 20
     for k in common:
         np.testing.assert_allclose(replayed[k], recorded[k])
+
+
+# ------------------------------------------------------------------------------ replay
+def _forces(msgs: Any) -> dict[int, np.ndarray]:
+    return {int(m.frame_index): np.asarray(list(m.net_force)) for m in msgs}
+
+
+@pytest.mark.timeout(240)
+def test_replay_of_a_recording_started_mid_run_in_contact_reproduces_the_live_forces(tmp_path):
+    from bubble_rt.io.mcap import TOPIC_SETTINGS, McapRecording, iter_messages
+
+    path, out = tmp_path / "mid.mcap", tmp_path / "replayed.mcap"
+    cfg = DaemonConfig().with_overrides(
+        **{
+            "network.pub": ANY_PORT,
+            "network.control": ANY_PORT,
+            "estimator.mesh": "coarse",
+            "solver.time_limit_ms": 0.0,  # a time-limited solve depends on the machine's load
+        }
+    )
+    d = Daemon(cfg).start()
+    try:
+        assert d.wait_ready(180)
+        with Subscriber(d.pub_address, d.control_address, timeout_s=30) as sub:
+            touching = next(
+                (f for f in sub.frames(timeout_s=60) if np.linalg.norm(f.net_force) > 0.3), None
+            )
+            assert touching is not None, "the demo scene never touched"
+        with Controller(d.control_address) as c:
+            n = d.frames_published
+            c.set_params(k_f=0.5)  # a live change the replay must know about
+            # Applied: a frame finished after the request took the pending change.
+            assert wait_for(lambda: d.frames_published >= n + 2, 30)
+            c.record_start(str(path))
+            n = d.frames_published
+            assert wait_for(lambda: d.frames_published >= n + 30, 60)
+            c.record_stop()
+    finally:
+        d.stop()
+    rec = McapRecording(path)
+    live = _forces(rec.force_frames())
+    assert len(live) >= 20
+    first = min(live)
+    assert np.linalg.norm(live[first]) > 0.1  # recording started during contact
+    settings = [m for t, m, _, _ in iter_messages(path) if t == TOPIC_SETTINGS]
+    assert settings and "k_f = 0.5" in settings[0].config_toml
+    assert rec.has_reference and rec.mesh is not None
+
+    cfg2 = cfg.with_overrides(
+        **{
+            "network.pub": ANY_PORT,
+            "network.control": ANY_PORT,
+            "camera.source": f"replay:{path}",
+            "camera.pace": "fast",
+            "camera.loop": False,
+            "recording.path": str(out),
+            "recording.queue": 100000,
+        }
+    )
+    assert cfg2.estimator.k_f != 0.5  # the replay's own config differs from the live one
+    # The replay's outputs as it recorded them itself (no subscriber joining late).
+    d2 = Daemon(cfg2).start()
+    try:
+        assert wait_for(lambda: d2.frames_published >= len(live), 120)
+    finally:
+        d2.stop()
+    replayed = _forces(McapRecording(out).force_frames())
+    assert set(replayed) == set(live)
+    diff = np.array([np.linalg.norm(replayed[k] - live[k]) for k in sorted(live)])
+    assert diff.max() < 1e-9, diff.max()

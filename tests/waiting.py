@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import re
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -34,6 +35,16 @@ def _name(pred: Callable[[], Any]) -> str:
         return inspect.getsource(pred).strip()
     except (OSError, TypeError):
         return repr(pred)
+
+
+def child_env() -> dict[str, str]:
+    """The environment for a `bubble-rt` subprocess: this interpreter's import path (the package
+    under test and the tests' helper modules) and one BLAS thread."""
+    env = dict(os.environ)
+    tests = os.path.dirname(os.path.abspath(__file__))
+    env["PYTHONPATH"] = os.pathsep.join([tests] + [p for p in sys.path if p])
+    env["OPENBLAS_NUM_THREADS"] = "1"
+    return env
 
 
 _ADDRESSES = re.compile(r"publishing on (\S+), control on (\S+)")
