@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
+from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
@@ -200,6 +201,40 @@ def refused_at_load(dotted: str, value: Any) -> ConfigError:
     with pytest.raises(ConfigError) as ei:
         DaemonConfig.from_dict(nested(dotted, value))
     return ei.value
+
+
+#: The fakes' camera (H x W pixels).
+CAM = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
+
+
+def sim_like_camera(pressure_pa: float = P0, rate_hz: float = 100.0) -> IterableCamera:
+    """Frames on the scene clock from 0 and reference frames at t = -0.1 .. -0.033 s, like
+    the simulator's."""
+
+    def frames():  # type: ignore[no-untyped-def]
+        for i in range(100000):
+            yield replace(make_frame(i), pressure_pa=pressure_pa)
+
+    def reference(n: int) -> list[Frame]:
+        return [
+            replace(make_frame(500 + k), t=-0.1 + k / 30.0, index=k - n, pressure_pa=pressure_pa)
+            for k in range(n)
+        ]
+
+    return IterableCamera(frames, CAM, rate_hz=rate_hz, reference=reference, keep_index=True)
+
+
+def start_daemon(camera=None, pressure=None, **overrides):  # type: ignore[no-untyped-def]
+    """A started daemon on ``camera`` (default ScriptedCamera) and the fake processor, with
+    ``fake_config(**overrides)``, ready (like :func:`start`, which also returns the camera)."""
+    d = Daemon(
+        fake_config(**overrides),
+        camera=camera or ScriptedCamera(),
+        pressure=pressure or constant_pressure(),
+        processor_factory=FakeProcessor,
+    ).start()
+    assert d.wait_ready(20)
+    return d
 
 
 def main() -> None:

@@ -4,11 +4,14 @@ ROS 2 bag frames (a textured dome with a pressure ramp)."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
+from bubble_rt.io.mcap import Recorder, iter_messages
+from daemon_fakes import make_frame
 from synth_rgbd import dome_depth, texture
 
 H, W = 24, 32
@@ -99,10 +102,8 @@ def killed_recording(path: Path, frames: int = 12, more: int = 0) -> Path:
 
 def _record_until_killed(path: str, frames: int, more: int) -> None:
     """:func:`killed_recording`'s child process."""
-    import time
 
-    from bubble_rt.io.mcap import Recorder, iter_messages
-    from daemon_fakes import make_frame
+    from bubble_rt.io.mcap import iter_messages
 
     def on_disk() -> int:  # messages readable in the file (a chunk is there once flushed)
         try:
@@ -119,3 +120,7 @@ def _record_until_killed(path: str, frames: int, more: int) -> None:
     for i in range(frames, frames + more):
         rec.write_frame(make_frame(i))
     time.sleep(600)  # killed meanwhile: a crash, not an exit
+
+
+def log_times(path):  # type: ignore[no-untyped-def]
+    return [t for _, _, t, _ in iter_messages(path)]

@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 from bubble_rt.config import (
+    ESTIMATOR_RANGES,
     ConfigError,
     DaemonConfig,
     dump_toml,
@@ -16,6 +17,7 @@ from bubble_rt.config import (
     key_range,
     keys,
 )
+from bubble_rt.io.protocol import PARAM_NAMES
 from daemon_fakes import nested, refused_at_load
 
 
@@ -340,3 +342,16 @@ def test_opencv_threads_are_bounded():
     e = refused_at_load("processing.opencv_threads", 100000000000)
     assert e.key == "processing.opencv_threads" and "[0, 256]" in str(e)
     assert "100000000000" in str(e)
+
+
+def test_parameter_ranges_are_the_configurations():
+    for name in PARAM_NAMES:
+        r = ESTIMATOR_RANGES[name]
+        for bad in (r.lo - abs(r.lo) - 1, r.hi * 10):
+            with pytest.raises(ConfigError, match=f"estimator.{name}: must be in"):
+                DaemonConfig.from_dict({"estimator": {name: bad}})
+            from bubble_rt.daemon.control import validate_params
+
+            assert validate_params({name: bad}) == (f"set_params: {name} {r.problem(bad)}")
+        DaemonConfig.from_dict({"estimator": {name: r.lo}})
+        DaemonConfig.from_dict({"estimator": {name: r.hi}})

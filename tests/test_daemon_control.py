@@ -14,12 +14,15 @@ from bubble_rt.daemon.control import validate_params
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
 from bubble_rt.io.client import ControlError, Controller
+from bubble_rt.io.mcap import McapRecording, Recorder, RecordingPathError
 from daemon_fakes import (
     FakeProcessor,
     ScriptedCamera,
     constant_pressure,
     fake_config,
+    sim_like_camera,
     start,
+    start_daemon,
 )
 from waiting import wait_for
 
@@ -174,3 +177,111 @@ def test_validate_params_names_the_parameter():
         "set_params: k_const must be in [0, 1e+06] Pa, got -1.0"
     )
     assert validate_params({"k_linear": 0.0}) is None
+
+
+@pytest.mark.timeout(120)
+def test_record_start_over_control_writes_a_readable_file(tmp_path):
+    """record_start used to leave a 178-byte file while the status said "recording"."""
+    d = start_daemon(sim_like_camera())
+    out = tmp_path / "ctl.mcap"
+    try:
+        with Controller(d.control_address) as c:
+            assert c.record_start(str(out)) == str(out.resolve())
+            assert wait_for(lambda: d.recorder is not None and d.recorder.written > 30)
+            st = c.status()
+            assert st.recording and st.recording_error == ""
+            assert c.record_stop() == str(out.resolve())
+    finally:
+        d.stop()
+    rec = McapRecording(out)
+    assert rec.report.complete and len(rec) >= 5 and rec.has_reference
+
+
+@pytest.mark.timeout(120)
+def test_record_start_refuses_an_existing_file_unless_asked_to_overwrite(tmp_path):
+    """A text file given to record_start became a 60 MB MCAP."""
+    text = tmp_path / "notes.txt"
+    text.write_text("keep me\n")
+    d = start_daemon()
+    try:
+        with Controller(d.control_address) as c:
+            with pytest.raises(ControlError, match="file exists"):
+                c.record_start(str(text))
+            assert text.read_text() == "keep me\n" and d.recorder is None
+            c.record_start(str(text), overwrite=True)
+            assert wait_for(lambda: d.recorder is not None and d.recorder.written > 0)
+            c.record_stop()
+        assert text.read_bytes().startswith(b"\x89MCAP0\r\n")
+    finally:
+        d.stop()
+
+
+@pytest.mark.timeout(120)
+def test_record_start_creates_no_folders(tmp_path):
+    d = start_daemon()
+    try:
+        with Controller(d.control_address) as c:
+            with pytest.raises(ControlError, match="does not exist"):
+                c.record_start(str(tmp_path / "a" / "b" / "x.mcap"))
+        assert not (tmp_path / "a").exists()
+    finally:
+        d.stop()
+
+
+@pytest.mark.timeout(120)
+def test_record_start_refuses_a_fifo_without_blocking_the_control_thread(tmp_path):
+    """A FIFO path blocked the control thread until something read it."""
+    fifo = tmp_path / "pipe.mcap"
+    os.mkfifo(fifo)
+    d = start_daemon()
+    try:
+        # A control thread blocked on the FIFO would leave these requests unanswered: the
+        # Controller's timeout would raise TimeoutError, not the refusal.
+        with Controller(d.control_address, timeout_s=2.0) as c:
+            with pytest.raises(ControlError, match="not a regular file .*FIFO"):
+                c.record_start(str(fifo), overwrite=True)
+            with pytest.raises(ControlError, match="FIFO"):
+                c.record_start(str(fifo))
+            assert wait_for(lambda: c.status().state == "running")
+    finally:
+        d.stop()
+    with pytest.raises(RecordingPathError, match="FIFO"):
+        Recorder(fifo, overwrite=True)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(
+    "param,value", [("k_u", 5e-324), ("youngs_modulus", 1e308), ("k_f", 1e308)]
+)
+def test_set_params_out_of_range_is_refused_and_not_applied(param, value):
+    """These answered OK, then every frame failed (singular matrix) or was all zeros."""
+    d = start_daemon()
+    try:
+        with Controller(d.control_address) as c:
+            n = d.frames_published
+            with pytest.raises(ControlError, match=f"set_params: {param} must be in"):
+                c.set_params(**{param: value})
+            # Two frames finished since: a change queued by the request would be applied.
+            assert wait_for(lambda: d.frames_published >= n + 2)
+            assert param not in d.processor.params
+            assert f"{param} = {value!r}" not in c.get_config()
+            assert c.status().state == "running"
+    finally:
+        d.stop()
+
+
+@pytest.mark.timeout(120)
+def test_oversize_request_gets_a_reply_the_client_can_read():
+    """17 MB requests made ZeroMQ drop the connection silently."""
+    d = start_daemon()
+    try:
+        assert d.ctl.getsockopt(zmq.MAXMSGSIZE) == protocol.MAX_MESSAGE_BYTES
+        with Controller(d.control_address, timeout_s=5.0) as c:
+            rep = c.send_raw(b"\x00" * (17 * 1024 * 1024))
+            assert not rep.ok and "request too large: 17825792 bytes" in rep.error
+            assert "ZMQ_MAXMSGSIZE" in rep.error
+            rep = c.send_raw(b"\x00" * (10 * 1024 * 1024))  # answered by the daemon
+            assert not rep.ok and rep.error.startswith("request too large: 10485760 bytes")
+            assert c.status().state == "running"
+    finally:
+        d.stop()

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import threading
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -10,7 +13,7 @@ import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon.service import Daemon
-from bubble_rt.daemon.sources import ReplayCamera
+from bubble_rt.daemon.sources import ReplayCamera, SourceError
 from bubble_rt.io.client import Controller, Subscriber
 from bubble_rt.io.mcap import (
     TOPIC_DEPTH,
@@ -21,8 +24,18 @@ from bubble_rt.io.mcap import (
     iter_messages,
     write_recording,
 )
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, make_frame
-from recording_fakes import killed_recording
+from bubble_rt.io.mcap_scan import McapFileError, ReadReport
+from daemon_fakes import (
+    CAM,
+    FakeProcessor,
+    H,
+    ScriptedCamera,
+    W,
+    constant_pressure,
+    fake_config,
+    make_frame,
+)
+from recording_fakes import killed_recording, log_times
 from waiting import ANY_PORT, wait_for
 
 pytestmark = pytest.mark.timeout(90)
@@ -184,3 +197,129 @@ def test_replay_of_a_recording_started_mid_run_in_contact_reproduces_the_live_fo
     assert set(replayed) == set(live)
     diff = np.array([np.linalg.norm(replayed[k] - live[k]) for k in sorted(live)])
     assert diff.max() < 1e-9, diff.max()
+
+
+@pytest.mark.timeout(120)
+def test_negative_source_times_never_reach_the_file(tmp_path):
+    """serve --record on the sim scene died with struct.error: negative MCAP log times."""
+    p = tmp_path / "neg.mcap"
+    frames = [replace(make_frame(i), t=-0.1 + i / 30.0) for i in range(6)]
+    ref = [replace(make_frame(50 + k), t=-0.2 + k / 30.0, index=k - 2) for k in range(2)]
+    assert write_recording(p, frames, CAM, reference=ref) == 6
+    from mcap.reader import make_reader
+
+    with open(p, "rb") as f:  # the mcap package's indexed reader: a finalised file
+        assert sum(1 for _ in make_reader(f).iter_messages()) > 0
+    assert min(log_times(p)) >= 0
+    rec = McapRecording(p)
+    assert len(rec) == 6 and rec.has_reference and rec.report.complete
+
+
+@pytest.mark.timeout(120)
+def test_killed_recording_is_read_with_a_not_closed_warning(tmp_path):
+    """SIGKILL leaves no summary or footer: every reader here reads it and warns."""
+    p = tmp_path / "crash.mcap"
+    killed_recording(p, frames=12)
+    from mcap.reader import make_reader
+
+    with open(p, "rb") as f, pytest.raises(Exception):  # noqa: B017 - the package's reader
+        list(make_reader(f).iter_messages())
+    with pytest.warns(RecordingWarning, match="not closed"):
+        rec = McapRecording(p)
+    assert len(rec) >= 10 and not rec.report.closed
+    np.testing.assert_array_equal(list(rec)[9].rgb, make_frame(9).rgb)
+    report = ReadReport(str(p))
+    assert sum(1 for _ in iter_messages(p, report)) >= 30 and not report.closed
+    src = ReplayCamera(str(p), realtime=False)  # replay: the warning is in the source status
+    assert src.stats.errors.get("recording") == 1 and "not closed" in src.stats.last_error
+
+
+@pytest.mark.timeout(120)
+def test_recorder_write_failure_is_reported_at_once(tmp_path):
+    """Recording to /dev/full killed the writer thread with a traceback."""
+    seen: list[BaseException] = []
+    old = threading.excepthook
+    threading.excepthook = lambda a: seen.append(a.exc_value)  # type: ignore[assignment]
+    try:
+        rec = Recorder("/dev/full", CAM, file=open("/dev/full", "wb"))  # noqa: SIM115
+        assert wait_for(lambda: rec.failed != "", 2.0)
+        assert "No space left on device" in rec.failed
+        for i in range(5):
+            rec.write_frame(make_frame(i))  # never raises, counted as dropped
+        assert rec.dropped >= 5
+        assert rec.close() is False
+    finally:
+        threading.excepthook = old
+    assert seen == []
+
+
+def closed_mcap(p: Path, n: int = 40) -> None:
+    rec = Recorder(p, CAM, chunk_size=4000, compression="lz4", queue_size=10000)
+    for i in range(n):
+        rec.write_frame(
+            replace(
+                make_frame(i),
+                rgb=np.random.default_rng(i).integers(0, 255, (H, W, 3), dtype=np.uint8),
+            )
+        )
+    rec.close()
+
+
+@pytest.mark.timeout(120)
+def test_truncated_mcap_reports_what_was_lost(tmp_path):
+    """Half a file replayed 13 of 40 frames with no warning."""
+    p = tmp_path / "full.mcap"
+    closed_mcap(p)
+    cut = tmp_path / "half.mcap"
+    cut.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.warns(RecordingWarning, match="not closed") as w:
+        rec = McapRecording(cut)
+    assert 5 < len(rec) < 40
+    assert "bytes unreadable" in str(w[0].message) or "not closed" in str(w[0].message)
+    src = ReplayCamera(str(cut), realtime=False)
+    assert src.stats.errors == {"recording": 1} and "not closed" in src.stats.last_error
+
+
+@pytest.mark.timeout(120)
+def test_corrupted_mcap_chunks_are_skipped_and_counted(tmp_path):
+    """Two 64-byte corruptions lost 31 of 40 frames silently."""
+    p = tmp_path / "full.mcap"
+    closed_mcap(p)
+    from mcap.reader import make_reader
+
+    with open(p, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes  # type: ignore[union-attr]
+    data = bytearray(p.read_bytes())
+    for k in (len(chunks) // 4, len(chunks) // 2):  # 64 bytes inside two chunks' data
+        at = chunks[k].chunk_start_offset + chunks[k].chunk_length // 2
+        data[at : at + 64] = bytes(range(64))
+    bad = tmp_path / "corrupt.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.warns(RecordingWarning, match="indexed") as w:
+        rec = McapRecording(bad)
+    r = rec.report
+    assert r.closed and r.chunks_skipped == 2 and "damaged chunk" in r.problems[0]
+    assert rec.frames_indexed == 40 and 30 <= len(rec) < 40
+    assert f"{len(rec)} of 40 frames readable" in str(w[0].message)
+    assert [f.index for f in rec] == sorted(f.index for f in rec)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(
+    "content", [b"", "prefix", os.urandom(4096)], ids=["empty", "100_bytes", "random"]
+)
+def test_non_mcap_or_empty_file_is_refused_at_once(tmp_path, content):
+    """An empty, 100-byte or random .mcap left the daemon "starting" forever."""
+    p = tmp_path / "x.mcap"
+    if content == "prefix":
+        full = tmp_path / "full.mcap"
+        closed_mcap(full, 3)
+        content = full.read_bytes()[:100]
+    p.write_bytes(content)
+    # Refused at construction and at start (a daemon "starting" forever would not raise).
+    with pytest.raises(SourceError, match="empty file|not an MCAP file|no frame"):
+        ReplayCamera(str(p))
+    with pytest.raises(SourceError):
+        Daemon(fake_config(**{"camera.source": f"replay:{p}"})).start()
+    with pytest.raises(McapFileError):
+        McapRecording(p)

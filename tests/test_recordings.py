@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bubble_rt.daemon.sources import ReplayCamera, SourceError
 from bubble_rt.estimation.deformation import Reference
 from bubble_rt.frames import FrameError
 from bubble_rt.io.recordings import (
@@ -139,3 +140,18 @@ def test_real_reference_capture():
     # Averaging five frames: close to each single frame, within sensor noise.
     assert np.median(np.abs(ref.depth[both] - frames[0].depth[both])) < 3e-4
     assert ref.rgb.shape == (480, 640, 3) and ref.rgb.dtype == np.uint8
+
+
+def test_truncated_rgb_0_npy_gives_a_clear_error(tmp_path):
+    """Used to exit with a bare `mmap length is greater than file size` traceback."""
+    root = tmp_path / "rec"
+    make_punyo(root, n=3)
+    f = root / "expand" / "rgb_0.npy"
+    f.write_bytes(f.read_bytes()[:200])
+    with pytest.raises(FrameError, match=r"rgb_0\.npy: unreadable, damaged or truncated"):
+        open_recording(root)
+    with pytest.raises(SourceError, match=r"rgb_0\.npy"):
+        ReplayCamera(str(root))
+    from bubble_rt.cli import main
+
+    assert main(["serve", "--camera", f"replay:{root}", "--duration", "0.1"]) == 1

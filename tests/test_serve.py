@@ -17,6 +17,7 @@ from daemon_fakes import (
     fake_config,
     refused_at_load,
 )
+from recording_fakes import make_punyo
 from waiting import ANY_PORT, ServedProcess, child_env, wait_for
 
 pytestmark = pytest.mark.timeout(90)
@@ -180,3 +181,17 @@ def test_recording_path_under_an_existing_file_is_a_clear_error(tmp_path):
             assert c.status().state in ("starting", "running", "degraded")
     finally:
         d.stop()
+
+
+@pytest.mark.timeout(120)
+def test_serve_refuses_to_record_over_an_existing_file(tmp_path, capsys):
+    from bubble_rt.cli import main
+
+    root = tmp_path / "rec"
+    make_punyo(root, n=3)
+    keep = tmp_path / "run.mcap"
+    keep.write_text("an earlier run\n")
+    net = ["--pub", ANY_PORT, "--control", ANY_PORT]
+    args = ["serve", "--camera", f"replay:{root}", "--record", str(keep), "--duration", "0.1"]
+    assert main(args + net) == 1
+    assert "file exists" in capsys.readouterr().err and keep.read_text() == "an earlier run\n"

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +21,7 @@ from bubble_rt.daemon.sources import (
     LineError,
     PressureBuffer,
     RealSenseCamera,
+    ReplayCamera,
     SerialPressure,
     SourceError,
     make_camera_source,
@@ -27,14 +30,23 @@ from bubble_rt.daemon.sources import (
     parse_pressure_line,
 )
 from bubble_rt.io.client import Subscriber
+from bubble_rt.io.mcap import TOPIC_DEPTH, TOPIC_PRESSURE, TOPIC_RGB, Recorder, raw_image
+from bubble_rt.io.protocol import pb
 from daemon_fakes import (
+    CAM,
+    P0,
     FakeProcessor,
     FakeSensor,
+    H,
     ScriptedCamera,
+    W,
     fake_config,
     make_frame,
+    start_daemon,
     status_of,
 )
+from daemon_fakes import status_of as status
+from recording_fakes import make_punyo
 from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
@@ -513,3 +525,124 @@ def test_camera_and_serial_pressure_combine(tmp_path):
         stop.set()
         d.stop()
         sensor.vanish()
+
+
+def damage_punyo(root: Path, kind: str) -> str:
+    """Damage frame 1 of a punyo recording; returns the file name the error must name."""
+    exp = root / "expand"
+    if kind == "truncated_npy":
+        data = (exp / "rgb_1.npy").read_bytes()
+        (exp / "rgb_1.npy").write_bytes(data[: len(data) // 2])
+        return "rgb_1.npy"
+    if kind == "garbage_npy":
+        (exp / "pc_1.npy").write_bytes(os.urandom(300))
+        return "pc_1.npy"
+    if kind == "small_image":
+        np.save(exp / "rgb_1.npy", np.zeros((H // 2, W // 2, 3), np.uint8))
+        return "rgb_1.npy"
+    if kind == "float64_image":
+        np.save(exp / "rgb_1.npy", np.zeros((H, W, 3), np.float64))
+        return "rgb_1.npy"
+    if kind == "all_nan_depth":
+        np.save(exp / "pc_1.npy", np.full((H * W, 3), np.nan, np.float32))
+        return "frame 1"
+    if kind == "nan_pressure":
+        np.save(exp / "pressure_1.npy", np.float64("nan"))
+        return "pressure_1.npy"
+    raise AssertionError(kind)
+
+
+BAD_KINDS = [
+    "truncated_npy",
+    "garbage_npy",
+    "small_image",
+    "float64_image",
+    "all_nan_depth",
+    "nan_pressure",
+]
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("kind", BAD_KINDS)
+def test_bad_punyo_frame_is_skipped_counted_and_named(tmp_path, kind):
+    """One bad frame made the replay restart from frame 0 every 0.5 s, even with loop=false."""
+    root = tmp_path / "rec"
+    make_punyo(root, n=5)
+    name = damage_punyo(root, kind)
+    src = ReplayCamera(str(root), realtime=False, loop=False)
+    d = start_daemon(src, **{"camera.pace": "fast", "camera.loop": False})
+    try:
+        assert wait_for(lambda: src.finished.is_set() and d.frames_published >= 1, 20)
+        # Every good frame (4 of 5) went through, and the status says so.
+        assert wait_for(lambda: status(d).sources[src.name]["received"] == 4, 20)
+        st = status(d)
+    finally:
+        d.stop()
+    stats = st.sources[src.name]
+    assert stats["error_counts"] == {"bad_frame": 1}
+    assert name in stats["last_error"] and "frame 1" in stats["last_error"]
+    assert src.stats.received == 4 and len(src.bad_frames) == 1
+
+
+@pytest.mark.timeout(120)
+def test_replay_with_a_bad_frame_never_restarts_from_frame_0(tmp_path):
+    root = tmp_path / "rec"
+    make_punyo(root, n=5)
+    damage_punyo(root, "truncated_npy")
+    src = ReplayCamera(str(root), realtime=True, loop=False)
+    emitted: list[int] = []
+    orig = src.emit
+    src.emit = lambda f: (emitted.append(f.index), orig(f))  # type: ignore[method-assign]
+    src.start()
+    try:
+        assert src.finished.wait(10)
+        # Time is the subject: nothing may be emitted for longer than the old code's 0.5 s
+        # restart period after the end.
+        time.sleep(0.6)
+    finally:
+        src.stop()
+    assert emitted == [0, 2, 3, 4]
+
+
+def bad_mcap(p: Path) -> None:
+    """An MCAP recording whose frames 1..4 are bad: truncated image data, a 12 x 16 image, all-NaN
+    depth, NaN pressure."""
+    rec = Recorder(p, CAM, queue_size=10000)
+    for i in range(8):
+        f = make_frame(i)
+        t = 1000.0 + i / 30
+        rgb = raw_image(f.rgb, t)
+        depth = raw_image(f.depth, t)
+        pressure = pb.PressureSample(time_ns=int(t * 1e9), pressure_pa=P0, frame_index=i)
+        if i == 1:
+            rgb.data = rgb.data[:100]
+        elif i == 2:
+            rgb = raw_image(np.zeros((12, 16, 3), np.uint8), t)
+        elif i == 3:
+            depth = raw_image(np.full((H, W), np.nan, np.float32), t)
+        elif i == 4:
+            pressure.pressure_pa = float("nan")
+        rec.write_message(TOPIC_RGB, rgb, t, i)
+        rec.write_message(TOPIC_DEPTH, depth, t, i)
+        rec.write_message(TOPIC_PRESSURE, pressure, t, i)
+    rec.close()
+
+
+@pytest.mark.timeout(120)
+def test_bad_mcap_frames_are_skipped_counted_and_named(tmp_path):
+    p = tmp_path / "bad.mcap"
+    bad_mcap(p)
+    src = ReplayCamera(str(p), realtime=False, loop=False)
+    d = start_daemon(src, **{"camera.pace": "fast", "camera.loop": False, "reference.frames": 1})
+    try:
+        assert wait_for(lambda: src.finished.is_set() and d.frames_published >= 3, 20)
+        st = status(d)
+    finally:
+        d.stop()
+    stats = st.sources[src.name]
+    assert stats["error_counts"] == {"bad_frame": 4}
+    bad = list(src.bad_frames)
+    assert [b.split(":")[0] for b in bad] == [f"bad.mcap frame {i}" for i in (1, 2, 3, 4)]
+    assert "cannot reshape array of size 100" in bad[0] and "16 x 12" in bad[1]
+    assert "no valid pixel" in bad[2] and "not finite" in bad[3]
+    assert src.stats.received == 4
