@@ -1,9 +1,10 @@
-"""Issue 12: estimator variants measured on the same tracked frames (README "Accuracy variants").
+"""Issue 12: estimator variants measured on the same tracked frames (docs/evaluation.md, "What
+each accuracy step buys").
 
 Tracks the frames of `bubble-rt eval` once per trajectory (same simulation, reference capture,
 mesh fit and DeformationTracker as `evaluate_trajectory`), then runs every variant on the same
-(U, dp) and scores it with `evaluation.frame_metrics` / `summarize`. The variants that lost are
-prototyped here only (NumPy); the product runs the winner (`ForceEstimator` defaults).
+(U, dp) and scores it with `bubble_rt.eval.metrics.frame_metrics` / `summarize`. The variants
+that lost are prototyped here only (NumPy); the product runs the winner (`ForceEstimator` defaults).
 "ms": median per frame of the estimate from (U, dp) (not flow / lifting), frames after the
 first of each trajectory; the baseline's is its whole process(frame) from images.
 

@@ -1,4 +1,4 @@
-// Warm-started ADMM for the regularised force estimate (method.md section 3).
+// Warm-started ADMM for the regularised force estimate (docs/method.md, "How the solver works").
 //
 //   minimise  sum_i w_i || F_ext(U + dU, dp)_i ||  +  (k_u / N) sum_i || dU_i ||^2
 //   s.t.      (U + dU)_i = 0 on the rim,   w_i = k_f |rim| / N on the rim, k_f elsewhere.

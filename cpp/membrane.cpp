@@ -88,7 +88,7 @@ MembraneModel::MembraneModel(const Eigen::Ref<const RowMatrixX3d>& vertices,
   normals_.resize(n, 3);
   for (Eigen::Index i = 0; i < n; ++i) {
     normals_.row(i) = area_normals_.row(i).normalized();
-    // method.md: the pressure force is dp * a_i * n_i with the lumped area and unit normal.
+    // docs/method.md: the pressure force is dp * a_i * n_i with the lumped area and unit normal.
     area_normals_.row(i) = areas_(i) * normals_.row(i);
   }
   K_.resize(3 * n, 3 * n);

@@ -1,4 +1,4 @@
-// Linear plane-stress membrane model of the bubble (method.md section 2).
+// Linear plane-stress membrane model of the bubble (docs/method.md, "Inflated membrane model").
 #pragma once
 
 #include <Eigen/Core>

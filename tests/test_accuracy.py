@@ -2,8 +2,8 @@
 
 The paper's estimate read 5-16 % of the truth under 1.1 N and marked no contact below about
 3 N; these tests keep that from coming back. Trajectories of the paper's dataset procedure
-with the *calibration* master seed (evaluation.CALIB_SEED_BASE), rendered and tracked like
-`bubble-rt eval` does, default EstimatorConfig, medium mesh.
+with the *calibration* master seed (``bubble_rt.eval.tasks.CALIB_SEED_BASE``), rendered and
+tracked like `bubble-rt eval` does, default EstimatorConfig, medium mesh.
 """
 
 from __future__ import annotations

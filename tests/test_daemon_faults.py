@@ -164,7 +164,7 @@ def test_reference_pressure_comes_from_the_pressure_source_in_use():
 
 
 def test_status_counts_faults_per_kind():
-    """The README says faults are counted per kind in the status; only totals were sent."""
+    """docs/daemon.md says faults are counted per kind in the status; only totals were sent."""
     cam = ScriptedCamera()
     d = start_daemon(cam)
     try:

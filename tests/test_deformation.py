@@ -15,11 +15,9 @@ from bubble_rt.estimation.deformation import (
     DeformationTracker,
     FlowSettings,
     Reference,
-    harmonic_fill,
-    lift_pixels,
-    mesh_laplacian,
 )
 from bubble_rt.estimation.fitting import fit_mesh
+from bubble_rt.estimation.lifting import harmonic_fill, lift_pixels, mesh_laplacian
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 from scipy.ndimage import map_coordinates
@@ -319,19 +317,17 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
 
 
 def test_identical_frames_give_zero_force_and_no_contact(scene):
-    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.pipeline import Pipeline
 
     cam, depth, img, ref, mesh = scene
-    est = ForceEstimator(mesh)
-    est.attach(DeformationTracker(mesh, cam, ref))
-    e = est.process(Frame(img.copy(), depth.copy(), 100000.0))
+    e = Pipeline(mesh, cam, ref).process(Frame(img.copy(), depth.copy(), 100000.0))
     assert not e.contact.any()
     assert np.linalg.norm(e.net_force) < 1e-3
     assert e.valid_node_fraction == 1.0
     assert {"flow", "lift", "solve"} <= set(e.timings_ms)
 
 
-def test_pipeline_two_stages_match_process_and_the_attached_estimator(scene):
+def test_pipeline_two_stages_match_the_tracker_and_estimator_by_hand(scene):
     from bubble_rt.estimation.estimator import ForceEstimator
     from bubble_rt.estimation.pipeline import Pipeline
 
@@ -342,11 +338,10 @@ def test_pipeline_two_stages_match_process_and_the_attached_estimator(scene):
     pipe = Pipeline(mesh, cam, ref)
     d = pipe.deform(frame)
     e = pipe.solve(frame, d)
-    est = ForceEstimator(mesh)
-    est.attach(DeformationTracker(mesh, cam, ref))
-    e_ref = est.process(frame)
+    by_hand = DeformationTracker(mesh, cam, ref).track(frame)
+    e_ref = ForceEstimator(mesh, reference=ref).estimate(by_hand.U, by_hand.dp)
     np.testing.assert_allclose(e.node_forces, e_ref.node_forces)
-    assert e.valid_node_fraction == e_ref.valid_node_fraction == d.valid_fraction
+    assert e.valid_node_fraction == by_hand.valid_fraction == d.valid_fraction
     assert {"flow", "lift", "solve", "post"} <= set(e.timings_ms)
     np.testing.assert_allclose(Pipeline(mesh, cam, ref).process(frame).net_force, e.net_force)
     pipe.set_reference(Reference.capture(frame))
@@ -355,16 +350,15 @@ def test_pipeline_two_stages_match_process_and_the_attached_estimator(scene):
 
 @pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
 def test_real_untouched_frames_give_no_contact_and_small_force():
-    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.pipeline import Pipeline
     from bubble_rt.io.recordings import open_recording
 
     rec = open_recording(DATA)
     ref = Reference.capture([rec[i] for i in range(5)])
     mesh = fit_mesh(Mesh.preset("medium"), ref, rec.camera)
-    est = ForceEstimator(mesh)
-    est.attach(DeformationTracker(mesh, rec.camera, ref))
+    pipe = Pipeline(mesh, rec.camera, ref)
     for i in range(5, 20):
-        e = est.process(rec[i])
+        e = pipe.process(rec[i])
         assert not e.contact.any(), f"frame {i}: {int(e.contact.sum())} contact nodes"
         assert np.linalg.norm(e.net_force) < 0.5, f"frame {i}: |net force| {e.net_force}"
         assert e.valid_node_fraction > 0.7

@@ -117,23 +117,6 @@ def test_reconfigure_weights_and_material():
         est.reconfigure(not_a_field=1.0)
 
 
-def test_process_uses_attached_tracker_and_merges_timings():
-    est = ForceEstimator(_mesh())
-    U, dp = _field()
-    tracker = SimpleNamespace(
-        track=lambda frame: SimpleNamespace(
-            U=U, dp=dp, valid_fraction=0.75, timings_ms={"flow": 1.0, "lift": 2.0}
-        )
-    )
-    with pytest.raises(RuntimeError):
-        est.process(object())
-    est.attach(tracker)
-    e = est.process(object())
-    assert e.valid_node_fraction == 0.75
-    assert {"flow", "lift", "solve", "post"} <= set(e.timings_ms)
-    assert np.allclose(e.node_forces, est.estimate(U, dp).node_forces)
-
-
 def test_make_estimator():
     assert isinstance(make_estimator("fem", _mesh()), ForceEstimator)
     with pytest.raises(ValueError, match="unknown estimator"):
@@ -182,8 +165,7 @@ def test_estimator_uses_the_reference_pressure_for_the_inflation():
     assert gauge.inflation_pa == pytest.approx(3000.0)
     assert cfg.gauge_pressure(None) == 5000.0 and cfg.gauge_pressure(-5.0) == 5000.0
     assert gauge.model.tension > 0 and gauge.model.inflation_pa == pytest.approx(3000.0)
-    est = ForceEstimator(mesh)
-    est.attach(SimpleNamespace(track=None, reference=SimpleNamespace(pressure_pa=106580.0)))
+    est = ForceEstimator(mesh, reference=SimpleNamespace(pressure_pa=106580.0))
     assert est.inflation_pa == pytest.approx(5255.0) and est.model.inflation_pa == est.inflation_pa
 
 

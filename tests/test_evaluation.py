@@ -404,3 +404,81 @@ def test_config_overrides_come_through_the_daemon_loader(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text("[estimator]\nk_f = 0.25\nyoungs_modulus = 2e6\n")
     assert load_config_overrides(cfg) == {"k_f": 0.25, "E": 2e6}
+
+
+def _patch(centroid_mm, force, pressure_centroid_mm=None):
+    from types import SimpleNamespace
+
+    c = np.asarray(centroid_mm, float) / 1e3
+    pc = c if pressure_centroid_mm is None else np.asarray(pressure_centroid_mm, float) / 1e3
+    return SimpleNamespace(centroid=c, pressure_centroid=pc, force=np.asarray(force, float))
+
+
+def test_patch_scores_match_centroids_and_find_two_contacts():
+    from bubble_rt.eval.metrics import patch_scores
+
+    truth = [_patch([-12.5, 0, 30], [0, 0, -2.0]), _patch([12.5, 0, 30], [0, 0, -3.0])]
+    est = [_patch([13, 0, 30], [0, 0, -3.3], [12.5, 1, 30]), _patch([-14, 0, 30], [0, 0, -1.7])]
+    s = patch_scores(est, truth)
+    # The larger true patch first: matched to the nearer estimate.
+    assert s.centroid_err_mm == pytest.approx([0.5, 1.5])
+    assert s.pressure_centroid_err_mm == pytest.approx([1.0, 1.5])
+    assert s.two_contact and s.two_found
+    # One patch force off by 25 %: not found; a third estimated patch: not found either.
+    assert not patch_scores([est[0], _patch([-14, 0, 30], [0, 0, -1.5])], truth).two_found
+    assert not patch_scores([*est, _patch([0, 0, 35], [0, 0, -0.1])], truth).two_found
+    # One estimated patch for two true ones: the second is missed (NaN).
+    one = patch_scores(est[:1], truth)
+    assert not one.two_found and math.isnan(one.centroid_err_mm[1])
+    # A true patch below PATCH_MIN_N is not scored and makes no two-contact frame.
+    weak = patch_scores(est, [truth[1], _patch([-12.5, 0, 30], [0, 0, -0.2])])
+    assert len(weak.centroid_err_mm) == 1 and not weak.two_contact
+
+
+def test_wrench_stats_over_frames_of_one_newton_or_more():
+    from dataclasses import replace
+
+    from bubble_rt.eval.metrics import wrench_stats
+
+    base = _rec("split", "fem", [0, 0, -2], [0, 0, -2], [1, 0], [1, 0])
+    recs = [
+        replace(
+            base,
+            tau_est=[0.011, 0, 0],
+            tau_gt=[0.01, 0, 0],
+            centroid_err_mm=[1.0, 3.0],
+            pressure_centroid_err_mm=[0.5, 1.0],
+            two_contact=True,
+            two_found=True,
+        ),
+        replace(
+            base,
+            tau_est=[0, 0.013, 0],
+            tau_gt=[0, 0.01, 0],
+            centroid_err_mm=[float("nan")],
+            pressure_centroid_err_mm=[float("nan")],
+            two_contact=True,
+        ),
+        replace(base, tau_est=[0, 0, 0.02], tau_gt=[0, 0, 0.01]),
+        # under 1 N: not scored however wrong
+        replace(
+            base,
+            f_gt=[0, 0, -0.5],
+            tau_est=[1, 1, 1],
+            tau_gt=[0, 0, 0.001],
+            centroid_err_mm=[50.0],
+            two_contact=True,
+        ),
+    ]
+    st = wrench_stats(recs)
+    assert st["n_wrench"] == 3 and st["n_torque"] == 3
+    assert st["torque_rel_err"] == pytest.approx(0.3)  # median of 0.1, 0.3, 1.0
+    assert st["torque_lever_err_mm"] == pytest.approx(1.5)  # median of 0.5, 1.5, 5 mm (2 N)
+    assert st["centroid_err_mm"] == pytest.approx(2.0)  # median of 1, 3 (the miss is counted apart)
+    assert st["n_patches_scored"] == 3 and st["n_patches_missed"] == 1
+    assert st["centroid_within_tol"] == pytest.approx(1 / 3)
+    assert st["pressure_centroid_within_tol"] == pytest.approx(2 / 3)
+    assert st["two_contact_rate"] == pytest.approx(0.5) and st["n_two_contact"] == 2
+    s = summarize(recs)
+    assert s["average"]["fem"]["torque_rel_err"] == pytest.approx(0.3)
+    assert "two contacts found" in markdown_table(s)

@@ -81,6 +81,46 @@ def test_scene_update_builder_arrows_colours_patches():
     assert ent["membrane"].frame_id == fx.FRAME_ID
 
 
+def test_scene_draws_the_wrench_on_its_line_of_action_and_patch_outlines():
+    from scipy.spatial.transform import Rotation
+
+    mesh = coarse_mesh()
+    n = mesh.n_nodes
+    a = int(np.flatnonzero(mesh.interior)[10])
+    ring = mesh.adjacency()[a].indices
+    nodes = np.concatenate([[a], ring])
+    contact = np.zeros(n, bool)
+    contact[nodes] = True
+    F = np.zeros((n, 3))
+    F[nodes] = [0.0, 0.0, -0.5]
+    c = mesh.vertices[a]
+    patch = Patch(centroid=c, area=1e-4, force=F.sum(0), nodes=nodes)
+    f = F.sum(0)
+    tau = np.cross(c, f)  # the force acts through the patch's centre
+    msg = fx.scene_update(
+        mesh.vertices, mesh.triangles, F, np.zeros(n), contact, [patch], net_force=f, net_torque=tau
+    )
+    scene = message_class("foxglove.SceneUpdate", bytes(msg.get_schema().data)).FromString(
+        msg.encode()
+    )
+    ent = {e.id: e for e in scene.entities}
+    force_arrow, torque_arrow = ent["wrench"].arrows
+    o = force_arrow.pose.orientation
+    d = Rotation.from_quat([o.x, o.y, o.z, o.w]).apply([1.0, 0.0, 0.0])
+    p = force_arrow.pose.position
+    tip = np.array([p.x, p.y, p.z]) + d * (force_arrow.shaft_length + force_arrow.head_length)
+    np.testing.assert_allclose(tip, c, atol=1e-9)  # the line of action through the centroid
+    np.testing.assert_allclose(d, f / np.linalg.norm(f), atol=1e-9)
+    assert torque_arrow.shaft_length + torque_arrow.head_length == pytest.approx(
+        fx.TORQUE_SCALE_M_PER_NM * np.linalg.norm(tau)
+    )
+    # The outline of a node and its ring of neighbours is the ring: one edge per ring segment.
+    (line,) = ent["contact"].lines
+    pts = np.array([[q.x, q.y, q.z] for q in line.points]).reshape(-1, 2, 3)
+    assert len(pts) == len(ring)
+    assert not np.any(np.all(np.isclose(pts, c), axis=2))  # the centre node is inside
+
+
 def test_parse_address():
     assert fx.parse_address(None) == ("127.0.0.1", 8765)
     assert fx.parse_address("ws://0.0.0.0:9000") == ("0.0.0.0", 9000)

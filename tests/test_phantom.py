@@ -19,13 +19,8 @@ import numpy as np
 import pytest
 from bubble_rt import eval as ev
 from bubble_rt.config import DaemonConfig
-from bubble_rt.estimation.deformation import (
-    FLAG_DEPTH_JUMP,
-    FlowSettings,
-    harmonic_fill,
-    leave_one_out_residual,
-    mesh_laplacian,
-)
+from bubble_rt.estimation.deformation import FLAG_DEPTH_JUMP, FlowSettings
+from bubble_rt.estimation.lifting import harmonic_fill, leave_one_out_residual, mesh_laplacian
 from bubble_rt.estimation.pipeline import Pipeline, capture_settings
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh

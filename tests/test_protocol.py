@@ -171,3 +171,58 @@ def test_client_imports_no_estimator():
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _frame_msg(patches=(), net_torque=None):
+    n = 4
+    return protocol.encode_force_frame(
+        sensor_id="s",
+        seq=0,
+        frame_index=0,
+        capture_time_ns=0,
+        mesh_id="m",
+        net_force=np.zeros(3),
+        node_forces=np.zeros((n, 3)),
+        normal_pressure=np.zeros(n),
+        contact=np.zeros(n, bool),
+        patches=patches,
+        net_torque=net_torque,
+    )
+
+
+def test_wrench_and_patch_geometry_round_trip():
+    patch = Patch(
+        centroid=np.array([0.01, 0.0, 0.02]),
+        area=1e-4,
+        force=np.array([0.1, 0, -1.0]),
+        nodes=np.array([1, 2]),
+        normal=np.array([0.0, 0.6, 0.8]),
+        peak_pressure=4321.5,
+        torque=np.array([1e-4, -2e-4, 3e-5]),
+        pressure_centroid=np.array([0.011, 0.001, 0.0199]),
+    )
+    tau = np.array([0.012, -0.034, 0.0005])
+    f = protocol.decode_force_frame(_frame_msg([patch], tau).SerializeToString())
+    np.testing.assert_array_equal(f.net_torque, tau)
+    (p,) = f.patches
+    for name in ("centroid", "force", "normal", "torque", "pressure_centroid"):
+        np.testing.assert_array_equal(getattr(p, name), getattr(patch, name))
+    assert p.peak_pressure == 4321.5
+    s = f.summary()
+    assert s["net_torque"] == pytest.approx(tau.tolist())
+    assert s["patches"][0]["peak_pressure"] == 4321.5
+    assert s["patches"][0]["normal"] == pytest.approx([0.0, 0.6, 0.8])
+
+
+def test_a_frame_without_the_wrench_fields_decodes_them_as_absent():
+    old = Patch(centroid=np.zeros(3), area=1e-4, force=np.zeros(3), nodes=np.array([0]))
+    f = protocol.decode_force_frame(_frame_msg([old]).SerializeToString())
+    assert f.net_torque is None and f.summary()["net_torque"] is None
+    assert f.patches[0].normal.size == 0 and f.patches[0].torque.size == 0
+    assert f.patches[0].peak_pressure == 0.0
+
+
+def test_a_torque_of_the_wrong_size_is_refused():
+    msg = _frame_msg(net_torque=np.zeros(2))
+    with pytest.raises(ProtocolError, match="net_torque must hold 3 values"):
+        protocol.decode_force_frame(msg.SerializeToString())

@@ -108,6 +108,8 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
     rec = McapRecording(p)
     recorded = {m.frame_index: np.asarray(m.net_force) for m in rec.force_frames()}
     assert len(recorded) >= 20 and rec.has_reference
+    torques = {m.frame_index: np.asarray(m.net_torque) for m in rec.force_frames()}
+    assert all(t.shape == (3,) and np.abs(t).max() > 0 for t in torques.values())
 
     p2 = tmp_path / "replayed.mcap"
     d3 = Daemon(
@@ -123,10 +125,14 @@ def test_recording_replays_to_the_same_outputs(tmp_path):
         d3.stop()
     assert d3.frames_published == len(rec)
     replayed = {m.frame_index: np.asarray(m.net_force) for m in McapRecording(p2).force_frames()}
+    replayed_tau = {
+        m.frame_index: np.asarray(m.net_torque) for m in McapRecording(p2).force_frames()
+    }
     common = set(recorded) & set(replayed)
     assert len(common) >= 20
     for k in common:
         np.testing.assert_allclose(replayed[k], recorded[k])
+        np.testing.assert_allclose(replayed_tau[k], torques[k])
 
 
 # ------------------------------------------------------------------------------ replay

@@ -109,7 +109,7 @@ def test_real_recording_reader():
     assert len(rec) == 20
     assert rec.placement == "centred"
     cam = rec.camera
-    # Pinhole fit of the cloud (the README's figures), not the original code's 385.263.
+    # Pinhole fit of the cloud (docs/deformation.md's figures), not the original code's 385.263.
     np.testing.assert_allclose(
         [cam.fx, cam.fy, cam.cx, cam.cy], [434.3, 433.4, 313.7, 247.5], atol=1.0
     )

@@ -181,6 +181,8 @@ def test_estimate_writes_a_bag_read_back_with_rosbags(tmp_path):
         assert w.header.frame_id == c.header.frame_id == "bubble_rt_sensor"
         f = res["frames"][k]["net_force_mesh"]
         assert [w.wrench.force.x, w.wrench.force.y, w.wrench.force.z] == pytest.approx(f)
+        tau = res["frames"][k]["net_torque_mesh"]
+        assert [w.wrench.torque.x, w.wrench.torque.y, w.wrench.torque.z] == pytest.approx(tau)
         assert [fl.name for fl in c.fields] == list(NODE_FIELDS)
         cloud = read_node_cloud(c)
         assert len(cloud["x"]) == c.width > 50
@@ -193,3 +195,31 @@ def test_estimate_bag_errors_are_clear(tmp_path, capsys):
     p = write_bag(tmp_path / "nopressure", frames, cam, pressure=False)
     assert main(["estimate", str(p), "--json", str(tmp_path / "o.json")]) == 2
     assert "pressure: no std_msgs/msg/Float32" in capsys.readouterr().err
+
+
+def test_bag_wrench_carries_the_torque(tmp_path):
+    from bubble_rt.io.rosbag import BagWriter
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    n = 3
+    tau = np.array([0.012, -0.034, 0.0005])
+    with BagWriter(tmp_path / "out") as bag:
+        bag.write(
+            T0,
+            np.array([0.1, 0.2, -3.0]),
+            np.zeros((n, 3)),
+            np.zeros((n, 3)),
+            np.zeros(n),
+            np.zeros(n, bool),
+            net_torque=tau,
+        )
+    with AnyReader([tmp_path / "out"], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as r:
+        (w,) = [
+            r.deserialize(raw, c.msgtype)
+            for c, _, raw in r.messages()
+            if c.topic == "/bubble_rt/wrench"
+        ]
+    t = w.wrench.torque
+    assert [t.x, t.y, t.z] == pytest.approx(tau.tolist())
+    assert w.wrench.force.z == pytest.approx(-3.0)

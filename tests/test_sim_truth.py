@@ -95,3 +95,37 @@ def test_contact_mask_of_full_contact_covers_every_node():
     sim = Mesh.generate(500)
     gt = truth_for(sim, sim.vertices, np.ones(sim.n_nodes, bool))
     assert gt.contact_mask(Mesh.preset("coarse")).all()
+
+
+def test_true_torque_and_patches_from_the_contact_forces():
+    sim = Mesh.generate(400)
+    n = sim.n_nodes
+    inner = np.flatnonzero(sim.interior)
+    x = sim.vertices
+    # Two loaded groups: the 3 interior nodes nearest x = -10 mm and nearest x = +10 mm.
+    left = inner[np.argsort(np.abs(x[inner, 0] + 0.01) + np.abs(x[inner, 1]))[:1]]
+    right = inner[np.argsort(np.abs(x[inner, 0] - 0.01) + np.abs(x[inner, 1]))[:1]]
+    f = np.zeros((n, 3))
+    f[left] = [0.0, 0.0, -1.0]
+    f[right] = [0.2, 0.0, -3.0]
+    f[sim.boundary[0]] = [0.0, 0.0, 5.0]  # on the rim: left out of the net force and torque
+    contact = np.zeros(n, bool)
+    contact[np.concatenate([left, right])] = True
+    interior = sim.interior
+    gt = GroundTruth(
+        indenter_pose=np.eye(4),
+        net_force=f[interior].sum(axis=0),
+        node_forces=f,
+        pressure_pa=106325.0,
+        sim_vertices=x,
+        sim_reference_vertices=x,
+        sim_triangles=sim.triangles,
+        contact=contact,
+        interior=interior,
+    )
+    expected = np.cross(x[left[0]], f[left[0]]) + np.cross(x[right[0]], f[right[0]])
+    np.testing.assert_allclose(gt.net_torque(), expected)
+    big, small = gt.patches()
+    np.testing.assert_allclose(big.force, [0.2, 0, -3.0])
+    np.testing.assert_allclose(big.centroid, x[right[0]])
+    np.testing.assert_allclose(small.centroid, x[left[0]])

@@ -47,7 +47,7 @@ def synthetic_field(
 
 
 def objective(model: MembraneModel, U: np.ndarray, dp: float, dU: np.ndarray) -> float:
-    """The group-lasso objective of method.md section 3 (dimensionless)."""
+    """The group-lasso objective of docs/method.md, "How the solver works" (dimensionless)."""
     n = model.n_nodes
     rim = ~model.mesh.interior
     w = np.where(rim, K_F * rim.sum() / n, K_F)

@@ -1,4 +1,5 @@
-// Private bindings for the RGBD deformation stage (use bubble_rt.deformation instead).
+// Private bindings for the RGBD deformation stage (public API: bubble_rt.estimation.deformation;
+// depth filling also bubble_rt.estimation.fitting).
 #include <pybind11/eigen.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>

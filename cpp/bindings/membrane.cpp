@@ -1,4 +1,4 @@
-// Private binding of the membrane model (public API: bubble_rt.membrane).
+// Private binding of the membrane model (public API: bubble_rt.estimation.membrane).
 #include "membrane.h"
 
 #include <pybind11/eigen.h>

@@ -1,4 +1,4 @@
-// Private binding of the relaxed group-lasso refit (public API: bubble_rt.estimator).
+// Private binding of the relaxed group-lasso refit (public API: bubble_rt.estimation.estimator).
 #include <pybind11/eigen.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>

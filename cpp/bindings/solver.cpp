@@ -1,4 +1,4 @@
-// Private binding of the ADMM group-lasso solver (public API: bubble_rt.solver).
+// Private binding of the ADMM group-lasso solver (public API: bubble_rt.estimation.solver).
 #include <pybind11/eigen.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>

@@ -9,7 +9,9 @@ from __future__ import annotations
 import math
 import os
 import stat
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -186,3 +188,37 @@ def zmq_endpoint(name: str, address: str) -> str:
     if problem is not None:
         raise ValueError(f"{name}: {problem}")
     return address
+
+
+@dataclass(frozen=True)
+class ParamRange:
+    """Accepted values of one numeric key: finite and within [lo, hi] (``unit`` for messages;
+    ``integer``: whole numbers only)."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+    integer: bool = False
+
+    def __str__(self) -> str:
+        return self.text()
+
+    def text(self) -> str:
+        """``[lo, hi] unit`` as the messages and ``config dump`` show it."""
+        unit = f" {self.unit}" if self.unit else ""
+        return f"[{_num(self.lo, self.integer)}, {_num(self.hi, self.integer)}]{unit}"
+
+    def problem(self, value: Any) -> str | None:
+        """None when ``value`` is acceptable, else what is wrong with it (no key name)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            kind = "an integer" if self.integer else "a number"
+            return f"must be {kind} in {self.text()}, got {value!r}"
+        if self.integer and not isinstance(value, int):
+            return f"must be an integer in {self.text()}, got {value!r}"
+        if not (math.isfinite(value) and self.lo <= value <= self.hi):
+            return f"must be in {self.text()}, got {value!r}"
+        return None
+
+
+def _num(x: float, integer: bool) -> str:
+    return str(int(x)) if integer else f"{x:g}"

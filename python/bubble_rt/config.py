@@ -13,7 +13,6 @@ the configuration with each key's documentation and range as comments.
 from __future__ import annotations
 
 import dataclasses
-import math
 import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
@@ -22,14 +21,16 @@ from typing import Any
 
 from bubble_rt._validate import (
     CONFIG_MAX_BYTES,
+    ParamRange,
     PathError,
     read_text_capped,
     regular_file,
     zmq_endpoint_problem,
 )
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
+from bubble_rt.estimation.params import ESTIMATOR_PARAMS, FLOW_SCALE
 from bubble_rt.estimation.registry import estimator_kinds
-from bubble_rt.sensor import PROFILES, SIM, SensorProfile, profile_for_layout
+from bubble_rt.sensor import PROFILES, SensorProfile, profile_for_layout
 
 
 class ConfigError(ValueError):
@@ -44,40 +45,6 @@ class ConfigError(ValueError):
 def _check(cond: bool, key: str, message: str) -> None:
     if not cond:
         raise ConfigError(key, message)
-
-
-@dataclass(frozen=True)
-class ParamRange:
-    """Accepted values of one numeric key: finite and within [lo, hi] (``unit`` for messages;
-    ``integer``: whole numbers only)."""
-
-    lo: float
-    hi: float
-    unit: str = ""
-    integer: bool = False
-
-    def __str__(self) -> str:
-        return self.text()
-
-    def text(self) -> str:
-        """``[lo, hi] unit`` as the messages and ``config dump`` show it."""
-        unit = f" {self.unit}" if self.unit else ""
-        return f"[{_num(self.lo, self.integer)}, {_num(self.hi, self.integer)}]{unit}"
-
-    def problem(self, value: Any) -> str | None:
-        """None when ``value`` is acceptable, else what is wrong with it (no key name)."""
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            kind = "an integer" if self.integer else "a number"
-            return f"must be {kind} in {self.text()}, got {value!r}"
-        if self.integer and not isinstance(value, int):
-            return f"must be an integer in {self.text()}, got {value!r}"
-        if not (math.isfinite(value) and self.lo <= value <= self.hi):
-            return f"must be in {self.text()}, got {value!r}"
-        return None
-
-
-def _num(x: float, integer: bool) -> str:
-    return str(int(x)) if integer else f"{x:g}"
 
 
 Choices = tuple[str, ...] | Callable[[], tuple[str, ...]]
@@ -210,7 +177,7 @@ class PressureConfig:
     """Where air pressure comes from.
 
     source: "camera" (the pressure carried by sim/replay frames), "serial:<port>" (a
-    microcontroller printing the line protocol, see README) or "constant:<pascals>".
+    microcontroller printing the line protocol, see docs/daemon.md) or "constant:<pascals>".
     """
 
     source: str = option(
@@ -218,11 +185,25 @@ class PressureConfig:
     )
     baud: int = option(115200, "serial port speed", lo=300, hi=10_000_000, unit="baud")
     default_unit: str = option("hPa", "unit of readings that carry none", choices=("hPa", "Pa"))
+    #: The default range (absolute) holds every place a sensor works and every squeeze a bubble
+    #: survives: 30 kPa is below the lowest ambient (33.7 kPa on Everest's summit), 200 kPa is
+    #: the highest ambient (108.5 kPa) plus more than flattening a whole dome raises its air
+    #: (a Punyo about 56 kPa, the simulator's bubble about 16 kPa: tests/test_plausibility.py).
     min_pa: float = option(
-        30000.0, "readings below are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+        30000.0,
+        "readings below are rejected as out of range (absolute); a frame's pressure below is "
+        "replaced by the last good one (frame degraded), a reference below is refused",
+        lo=1,
+        hi=1e7,
+        unit="Pa",
     )
     max_pa: float = option(
-        200000.0, "readings above are rejected as out of range (absolute)", lo=1, hi=1e7, unit="Pa"
+        200000.0,
+        "readings above are rejected as out of range (absolute); a frame's pressure above is "
+        "replaced by the last good one (frame degraded), a reference above is refused",
+        lo=1,
+        hi=1e7,
+        unit="Pa",
     )
     stale_timeout_s: float = option(
         0.25,
@@ -294,44 +275,43 @@ class NetworkConfig:
         )
 
 
+def _estimator_option(key: str) -> Any:
+    """The ``[estimator]`` key ``key`` as declared in ``bubble_rt.estimation.params``."""
+    p = ESTIMATOR_PARAMS[key]
+    r = p.range
+    return option(p.file_default, p.doc, lo=r.lo, hi=r.hi, unit=r.unit)
+
+
 @dataclass(frozen=True)
 class EstimatorSection:
-    """Force estimator (method.md): a registered kind (``bubble_rt.estimation.registry``):
+    """Force estimator (docs/method.md): a registered kind (``bubble_rt.estimation.registry``):
     "fem" (group-lasso FEM) or "frictionless" (baseline). The parameter keys map onto
     EstimatorConfig through ``bubble_rt.estimation.estimator.CONFIG_KEYS``. Their ranges keep
     the solve regular (outside them it is singular or non-finite, e.g. k_u = 5e-324,
     E = 1e308); ``set_params`` checks the same ranges."""
 
-    #: Parameter defaults are EstimatorConfig's (tested): E fitted for the inflated model.
+    #: The parameter keys, their defaults, ranges and docs are declared once, in
+    #: bubble_rt.estimation.params (EstimatorConfig's defaults come from there too).
     kind: str = option("fem", "estimator kind", choices=estimator_kinds)
     mesh: str = option(
         "medium",
         "mesh preset (coarse 227, medium 390, fine 749 nodes) or a mesh file, loaded at start",
     )
     fit_mesh: bool = option(True, "fit the mesh onto the membrane seen in the reference frames")
-    k_f: float = option(0.05, "force sparsity weight", lo=1e-4, hi=1e3, unit="1/N")
-    k_u: float = option(537592.0, "displacement fit weight", lo=1e2, hi=1e10, unit="1/m^2")
-    youngs_modulus: float = option(
-        SIM.youngs_modulus, "membrane Young's modulus E", lo=1e4, hi=1e8, unit="Pa"
-    )
-    poisson: float = option(SIM.poisson, "membrane Poisson ratio", lo=0.0, hi=0.5)
-    thickness: float = option(SIM.thickness, "membrane thickness", lo=1e-5, hi=1e-2, unit="m")
-    k_const: float = option(2000.0, "contact threshold: constant term", lo=0.0, hi=1e6, unit="Pa")
-    k_linear: float = option(2.0, "contact threshold: factor on the mean pressure", lo=0.0, hi=1e3)
+    k_f: float = _estimator_option("k_f")
+    k_u: float = _estimator_option("k_u")
+    youngs_modulus: float = _estimator_option("youngs_modulus")
+    poisson: float = _estimator_option("poisson")
+    thickness: float = _estimator_option("thickness")
+    k_const: float = _estimator_option("k_const")
+    k_linear: float = _estimator_option("k_linear")
     profile: str = option(
         "auto",
         "sensor profile giving the physical constants (bubble_rt.sensor): auto = punyo for "
         "Punyo recordings, ROS 2 bags and RealSense cameras, sim otherwise",
         choices=("auto", *PROFILES),
     )
-    ambient_pa: float = option(
-        0.0,
-        "ambient pressure, subtracted from absolute pressure readings; it sets the rest "
-        "tension (0: the sensor profile's)",
-        lo=0.0,
-        hi=120e3,
-        unit="Pa",
-    )
+    ambient_pa: float = _estimator_option("ambient_pa")
 
     def __post_init__(self) -> None:
         from bubble_rt.mesh import PRESETS
@@ -379,8 +359,75 @@ class FlowSection:
     settings keep the deformation module's defaults)."""
 
     method: str = option(DEFAULT_FLOW_METHOD, "optical flow method", choices=FLOW_METHODS)
-    scale: float = option(1.0, "image scale the flow runs at", lo=0.05, hi=1.0)
+    scale: float = option(
+        1.0,
+        "image scale the flow runs at",
+        lo=FLOW_SCALE.lo,
+        hi=FLOW_SCALE.hi,
+        unit=FLOW_SCALE.unit,
+    )
     forward_backward: bool = option(False, "forward-backward consistency check")
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+@dataclass(frozen=True)
+class PlausibilitySection:
+    """Plausibility checks: a frame the physics cannot support is published degraded with a
+    reason (bubble_rt.estimation.plausibility; docs/daemon.md, Degraded frames)."""
+
+    max_press_speed_m_s: float = option(
+        0.5,
+        "fastest an object pushes the whole membrane footprint in; it bounds the pressure rate "
+        "(rest pressure x footprint x speed / air volume of the sensor profile's bubble: a "
+        "Punyo 0.9 kPa per ms at the default); a faster change is replaced by the last good "
+        "pressure (frame degraded)",
+        lo=0.001,
+        hi=100,
+        unit="m/s",
+    )
+    min_valid_fraction: float = option(
+        0.5, "fewer nodes tracked than this fraction: frame degraded", lo=0.0, hi=1.0
+    )
+    dark_level: float = option(
+        10.0,
+        "colour image mean below this: black (lens covered, lights off), frame degraded",
+        lo=0.0,
+        hi=255.0,
+        unit="of 255",
+    )
+    bright_level: float = option(
+        245.0,
+        "colour image mean above this: saturated, frame degraded",
+        lo=0.0,
+        hi=255.0,
+        unit="of 255",
+    )
+    frozen_frames: int = option(
+        5,
+        "this many frames in a row bit-identical to their predecessor (colour and depth): "
+        "frozen, frame degraded (only for a source whose reference frames differ: a noise-free "
+        "simulator repeats itself honestly)",
+        lo=1,
+        hi=100_000,
+        unit="frames",
+    )
+    max_force_without_contact_n: float = option(
+        3.0,
+        "a net force above this with no contact node: frame degraded",
+        lo=0.0,
+        hi=1e4,
+        unit="N",
+    )
+    reference_max_force_n: float = option(
+        1.0,
+        "the untouched reference frames must read at most this force, else the reference is "
+        "refused (wrong camera pose, intrinsics or sensor profile)",
+        lo=0.0,
+        hi=1e4,
+        unit="N",
+    )
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -469,6 +516,7 @@ class DaemonConfig:
     estimator: EstimatorSection = field(default_factory=EstimatorSection)
     solver: SolverSection = field(default_factory=SolverSection)
     flow: FlowSection = field(default_factory=FlowSection)
+    plausibility: PlausibilitySection = field(default_factory=PlausibilitySection)
     reference: ReferenceSection = field(default_factory=ReferenceSection)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)

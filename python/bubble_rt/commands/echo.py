@@ -43,13 +43,19 @@ def _vec(f: Any) -> tuple[float, float, float, float]:
 
 
 def format_line(frame: Any, rate_hz: float, state: str) -> str:
-    """``seq  rate  latency  net force  |F|  contact nodes/patches  state`` (N, ms, Hz).
+    """``seq  rate  latency  net force  |F|  net torque  contact nodes/patches  state`` (N,
+    mN m about the mesh origin, ms, Hz); the torque is left out for a frame without one.
 
     A frame with simulation truth (``has_truth``: simulated sources only) gets the truth
     beside the estimate: ``| true F [..] N |F| .. N contact .. nodes IoU ..`` (IoU of the
     estimated contact nodes against the true ones, "-" when neither has any).
     """
     fx, fy, fz, mag = _vec(frame.net_force)
+    tau = getattr(frame, "net_torque", None)
+    torque = ""
+    if tau is not None:
+        mx, my, mz, _ = _vec(1e3 * tau)
+        torque = f"tau [{mx:+6.1f} {my:+6.1f} {mz:+6.1f}] mNm  "
     flag = " DEGRADED: " + "; ".join(frame.degraded_reasons) if frame.degraded else ""
     truth = ""
     if getattr(frame, "has_truth", False):
@@ -64,7 +70,7 @@ def format_line(frame: Any, rate_hz: float, state: str) -> str:
         )
     return (
         f"#{frame.seq:<6d} {rate_hz:5.1f} Hz  lat {frame.latency_ms:6.1f} ms  "
-        f"F [{fx:+7.3f} {fy:+7.3f} {fz:+7.3f}] N  |F| {mag:6.3f} N  "
+        f"F [{fx:+7.3f} {fy:+7.3f} {fz:+7.3f}] N  |F| {mag:6.3f} N  {torque}"
         f"contact {int(frame.contact.sum()):3d} nodes {len(frame.patches)} patch  "
         f"{truth}{state}{flag}"
     )

@@ -8,7 +8,9 @@ The reference is captured from the given untouched frames; with a preset name fo
 file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
-timings_ms, wrench (6 or null), solver_status}]}.
+timings_ms, wrench (6 or null), solver_status, net_torque_mesh (3, N m, mesh frame, about its
+origin: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
+normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
@@ -21,6 +23,11 @@ import argparse
 from typing import Any
 
 from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
+
+#: Exit status when no usable frame is left, e.g. reference frames the plausibility checks
+#: refuse (their pressure out of range, or a force read untouched: the message says what to
+#: check; docs/daemon.md, "Degraded frames"). 0: done; 2: invalid arguments or input.
+EXIT_NO_FRAME = 3
 
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
 
@@ -98,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
 
     from bubble_rt.config import ConfigError, DaemonConfig
     from bubble_rt.estimation.pipeline import Pipeline, capture_settings
+    from bubble_rt.frames import FrameError
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
@@ -142,7 +150,15 @@ def run(args: argparse.Namespace) -> int:
     settings = capture_settings(cfg, realtime=False, layout=rec.layout)
     preset = cfg.estimator.mesh in PRESET_NODES
     settings["fit"] = settings["fit"] and preset
-    estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
+    try:
+        estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
+    except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
+        print(
+            f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
+            f"{getattr(rec, 'placement', rec.layout)})",
+            file=sys.stderr,
+        )
+        return EXIT_NO_FRAME
     mesh, reference = estimator.mesh, estimator.reference
     mesh_info: dict[str, Any] = (
         {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
@@ -159,11 +175,18 @@ def run(args: argparse.Namespace) -> int:
         from bubble_rt.io.rosbag import BagWriter
 
         bag = BagWriter(args.bag)
+    from bubble_rt.wrench import PatchFinder
+
+    finder = PatchFinder(mesh)
     frames_out = []
     for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
         frame = rec[i]
         e = estimator.process(frame)
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
+        tau_mesh = finder.net_torque(e.node_forces)
+        patches = finder.patches(
+            e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
+        )
         if bag is not None:
             bag.write(
                 frame.t,
@@ -172,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
                 e.node_forces,
                 e.normal_pressure,
                 e.contact,
+                net_torque=tau_mesh,
             )
         frames_out.append(
             {
@@ -181,9 +205,25 @@ def run(args: argparse.Namespace) -> int:
                 "net_force_mesh": f_mesh.tolist(),
                 "contact_nodes": int(np.count_nonzero(e.contact)),
                 "valid_node_fraction": float(e.valid_node_fraction),
+                "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
+                "degraded_reasons": list(e.degraded_reasons),
                 "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
                 "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
                 "solver_status": getattr(e.info, "status", None),
+                "net_torque_mesh": tau_mesh.tolist(),
+                "patches": [
+                    {
+                        "centroid": p.centroid.tolist(),
+                        "pressure_centroid": p.pressure_centroid.tolist(),
+                        "area": p.area,
+                        "force": p.force.tolist(),
+                        "normal": p.normal.tolist(),
+                        "peak_pressure": p.peak_pressure,
+                        "torque": p.torque.tolist(),
+                        "nodes": p.nodes.tolist(),
+                    }
+                    for p in patches
+                ],
             }
         )
     cam = rec.camera

@@ -6,14 +6,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, Protocol
 
-import numpy as np
-from numpy.typing import NDArray
-
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
 from bubble_rt.frames import Frame
-from bubble_rt.io import protocol
 from bubble_rt.mesh import Mesh
+from bubble_rt.wrench import PatchFinder as PatchFinder  # the patches the daemon publishes
 
 
 class Processor(Protocol):
@@ -72,46 +69,8 @@ class EstimatorProcessor:
         self.pipeline.cold_start()
 
     def set_reference(self, frames: list[Frame]) -> None:
-        from bubble_rt.estimation.deformation import Reference
-
-        self.pipeline.set_reference(Reference.capture(frames))
+        """Tare; a reference the plausibility checks refuse raises and the old one stays."""
+        self.pipeline.retake_reference(frames)
 
     def reconfigure(self, params: dict[str, float]) -> None:
         self.pipeline.reconfigure(params)
-
-
-class PatchFinder:
-    """Contact patches: connected components of the contact mask over mesh edges."""
-
-    def __init__(self, mesh: Mesh) -> None:
-        self.adjacency = mesh.adjacency()
-        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
-        self.areas = mesh.lumped_areas()
-
-    def patches(
-        self, contact: NDArray, node_forces: NDArray, displacements: NDArray | None = None
-    ) -> list[protocol.Patch]:
-        from scipy.sparse.csgraph import connected_components
-
-        idx = np.flatnonzero(np.asarray(contact, dtype=bool))
-        if idx.size == 0:
-            return []
-        sub = self.adjacency[idx][:, idx]
-        n_comp, labels = connected_components(sub, directed=False)
-        pos = self.vertices if displacements is None else self.vertices + displacements
-        out = []
-        for c in range(n_comp):
-            nodes = idx[labels == c]
-            a = self.areas[nodes]
-            area = float(a.sum())
-            w = a / area if area > 0 else np.full(len(nodes), 1.0 / len(nodes))
-            out.append(
-                protocol.Patch(
-                    centroid=w @ pos[nodes],
-                    area=area,
-                    force=np.asarray(node_forces, dtype=np.float64)[nodes].sum(axis=0),
-                    nodes=nodes.astype(np.int64),
-                )
-            )
-        out.sort(key=lambda p: -float(np.linalg.norm(p.force)))
-        return out

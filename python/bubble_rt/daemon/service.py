@@ -122,8 +122,8 @@ class Daemon:
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
         self._recording_fault_counted = False
-        #: Extra outputs, e.g. bubble_rt.io.foxglove.FoxgloveView: on_frame(frame, force msg,
-        #: mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
+        #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0
@@ -400,10 +400,13 @@ class Daemon:
         """Write the sensor profile's ambient pressure into the configuration (unless it gives
         one), so that status, recordings and replays carry the value in use."""
         est = self.config.estimator
+        prof = est.sensor_profile(getattr(cam, "layout", "sim"))
         if not est.ambient_pa:
-            prof = est.sensor_profile(getattr(cam, "layout", "sim"))
             log.info("sensor profile %s: ambient pressure %.0f Pa", prof.name, prof.ambient_pa)
-            self.config = replace(self.config, estimator=replace(est, ambient_pa=prof.ambient_pa))
+            est = replace(est, ambient_pa=prof.ambient_pa)
+        # "auto" resolved by the camera's layout: the estimator (its plausibility bounds read
+        # the profile's bubble) is built from the configuration alone.
+        self.config = replace(self.config, estimator=replace(est, profile=prof.name))
 
     def _install_reference(self, frames: list[Frame]) -> None:
         try:
@@ -478,11 +481,17 @@ class Daemon:
                 timings[key] = float(v)
             contact = np.asarray(est.contact, dtype=bool)
             forces = np.asarray(est.node_forces, dtype=np.float64)
-            patches = self._patches.patches(contact, forces, getattr(est, "displacements", None))
+            patches = self._patches.patches(
+                contact,
+                forces,
+                getattr(est, "displacements", None),
+                est.normal_pressure,
+                getattr(est, "support", None),
+            )
             reasons = list(item.reasons)
             vf = float(getattr(est, "valid_node_fraction", 1.0))
-            if vf < 0.5:
-                reasons.append(f"only {vf:.0%} of nodes tracked")
+            # The pipeline's plausibility checks (inputs and result) join the daemon's own.
+            reasons += list(getattr(est, "degraded_reasons", []))
             for problem in (
                 faults.solver_problem(getattr(est, "info", None)),
                 faults.forces_problem(forces, est.net_force),
@@ -511,6 +520,7 @@ class Daemon:
                 solver_info=getattr(est, "info", None),
                 valid_node_fraction=vf,
                 degraded_reasons=reasons,
+                net_torque=self._patches.net_torque(forces),
             )
             attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
         except Exception as exc:

@@ -1,4 +1,5 @@
-"""Frictionless baseline (Kuppuswamy et al., RA-L 2020) as method.md's last section poses it.
+"""Frictionless baseline (Kuppuswamy et al., RA-L 2020) as the paper poses it (docs/method.md,
+"Reference implementation and frictionless baseline").
 
 A pre-tensioned membrane (constant tension T0) that moves only along its reference normals.
 Unknowns: per interior node the normal displacement u_i (m) and the contact pressure pc_i <= 0
@@ -36,11 +37,12 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from bubble_rt.estimation.estimator import ABSOLUTE_PRESSURE_MIN
+from bubble_rt.estimation.estimator import rest_gauge_pa
 from bubble_rt.estimation.solver import SolverInfo
 from bubble_rt.estimation.types import Estimate
-from bubble_rt.reference import contact_mask, lumped_areas, raycast_mesh, vertex_normals
-from bubble_rt.sensor import STANDARD_ATMOSPHERE_PA
+from bubble_rt.mesh import lumped_areas, vertex_normals
+from bubble_rt.reference import contact_mask, raycast_mesh
+from bubble_rt.sensor import SIM, STANDARD_ATMOSPHERE_PA
 
 __all__ = [
     "FrictionlessSettings",
@@ -61,8 +63,9 @@ class FrictionlessSettings:
         T0: membrane tension (N/m); None derives it as p0 R / 2 from the rest gauge pressure
             and the dome fitted to the mesh.
         rest_gauge_pa: rest gauge pressure p0 (Pa); None takes the reference pressure, minus
-            the ambient pressure when it looks absolute (as the FEM estimator does). Falls
-            back to 2600 Pa (Kuppuswamy's value) with a warning when that is not positive.
+            the ambient pressure when it looks absolute (``estimator.rest_gauge_pa``, the
+            FEM estimator's rule). Falls back to the configuration's ``inflation_pa`` (the
+            sensor profile's rest gauge pressure) with a warning when that is not positive.
         atmospheric_pa: ambient pressure (Pa) for gauge <-> absolute; None: the estimator
             configuration's ``ambient_pa`` (the sensor profile's), else the standard one.
         chamber_depth: depth (m) of the air chamber behind the rim plane; the enclosed volume
@@ -187,12 +190,10 @@ class FrictionlessEstimator:
         config: Any = None,
         settings: FrictionlessSettings | None = None,
     ) -> None:
-        import osqp
-
         t_setup = time.perf_counter()
         if settings is None:
             settings = getattr(config, "frictionless", None) or FrictionlessSettings()
-        self.settings = s = settings
+        self.settings = settings
         self.mesh = mesh
         self.config = config
         self.camera = camera
@@ -200,42 +201,54 @@ class FrictionlessEstimator:
         self.k_linear = float(getattr(config, "k_linear", 2.0))
         V = np.asarray(mesh.vertices, dtype=np.float64)
         T = np.asarray(mesh.triangles, dtype=np.int64)
-        n = len(V)
-        self.n = n
+        self.n = len(V)
         self.boundary = np.unique(np.asarray(mesh.boundary, dtype=np.int64))
-        self.interior = np.setdiff1d(np.arange(n), self.boundary)
-        ni = len(self.interior)
+        self.interior = np.setdiff1d(np.arange(self.n), self.boundary)
         self.areas = lumped_areas(V, T)
         self.normals = vertex_normals(V, T)
         self.reference_pressure_pa = float(reference.pressure_pa)
+        self._membrane_constants(V, T, config)
+        self._fix_rays(V, T, reference)
+        self._observation_matrix()
+        P = self._objective()
+        self._setup_solver(P, self._constraints(V, T))
+        self.setup_time_ms = 1e3 * (time.perf_counter() - t_setup)
+        self.last_info: Any = None
 
-        # Membrane and gas constants.
+    def _membrane_constants(self, V: NDArray, T: NDArray, config: Any) -> None:
+        """Rest gauge pressure p0, tension T0 = p0 R / 2, absolute P0 and chamber volume V0."""
+        s = self.settings
         self.dome = dome = fit_dome(V, T, self.boundary)
         ambient = s.atmospheric_pa
         if ambient is None:
             ambient = float(getattr(config, "ambient_pa", ATMOSPHERIC_PA))
         p0 = s.rest_gauge_pa
         if p0 is None:
-            pr = self.reference_pressure_pa
-            p0 = pr - ambient if pr > ABSOLUTE_PRESSURE_MIN else pr
-        if not p0 > 0 and s.T0 is None:
-            warnings.warn(
-                f"rest gauge pressure {p0} Pa is not positive; using 2600 Pa for T0",
-                stacklevel=2,
-            )
-            p0 = 2600.0
+            p0 = rest_gauge_pa(self.reference_pressure_pa, ambient)
+        if p0 is None or not p0 > 0:
+            fallback = float(getattr(config, "inflation_pa", SIM.bubble.gauge_pressure_pa))
+            if s.T0 is None:
+                warnings.warn(
+                    f"the reference pressure {self.reference_pressure_pa} Pa gives no positive "
+                    f"rest gauge pressure; using {fallback} Pa (the sensor profile's) for T0",
+                    stacklevel=3,
+                )
+            p0 = fallback
         self.rest_gauge_pa = float(p0)
-        self.T0 = float(s.T0) if s.T0 is not None else 0.5 * p0 * dome.radius
+        self.T0 = float(s.T0) if s.T0 is not None else 0.5 * self.rest_gauge_pa * dome.radius
         self.P0 = self.rest_gauge_pa + ambient
         self.V0 = (
             float(s.chamber_volume)
             if s.chamber_volume is not None
             else dome.dome_volume + dome.footprint_area * s.chamber_depth
         )
-        a = self.length = dome.half_width
-        self.pressure_scale = self.T0 / a  # Pa per non-dimensional pressure unit
+        self.length = dome.half_width
+        self.pressure_scale = self.T0 / self.length  # Pa per non-dimensional pressure unit
 
-        # Fixed ray set from the reference.
+    def _fix_rays(self, V: NDArray, T: NDArray, reference: Any) -> None:
+        """The ray set, fixed from the reference: every stride-th pixel that hits the mesh,
+        meets it at n . r_hat >= min_cos and whose reference depth agrees with the mesh."""
+        s, camera = self.settings, self.camera
         depth_ref = np.asarray(reference.depth, dtype=np.float64)
         if depth_ref.shape != (camera.height, camera.width):
             raise ValueError(
@@ -248,13 +261,11 @@ class FrictionlessEstimator:
         tri = hits.triangle
         ok = sel & (tri >= 0) & np.isfinite(depth_ref) & (depth_ref > 0)
         vv, uu = np.nonzero(ok)
-        tri_r = tri[vv, uu]
         S = hits.bary[vv, uu]  # R x 3
-        rhat = hits.direction[vv, uu]
-        corners = T[tri_r]  # R x 3
+        corners = T[tri[vv, uu]]  # R x 3
         n_r = np.einsum("rk,rkd->rd", S, self.normals[corners])
         n_r /= np.linalg.norm(n_r, axis=1, keepdims=True)
-        cosn = np.einsum("rd,rd->r", n_r, rhat)
+        cosn = np.einsum("rd,rd->r", n_r, hits.direction[vv, uu])
         xy = camera.normalized(np.column_stack([uu, vv]).astype(np.float64))
         cos_z = 1.0 / np.sqrt(1.0 + (xy**2).sum(axis=1))  # ray . camera z axis
         y_ref = depth_ref[vv, uu] / cos_z
@@ -263,32 +274,49 @@ class FrictionlessEstimator:
         self._pix = (vv[keep], uu[keep])
         self._cos_z = cos_z[keep]
         self._d0 = (y_ref if s.d0_from_depth else d_mesh)[keep]
-        S, corners, cosn = S[keep], corners[keep], cosn[keep]
-        R = len(self._d0)
-        if R == 0:
+        self._ray_bary, self._ray_nodes, self._ray_cos = S[keep], corners[keep], cosn[keep]
+        self.n_rays = len(self._d0)
+        if self.n_rays == 0:
             raise ValueError("no camera ray sees the membrane in the reference depth image")
-        self.n_rays = R
-        # Observation matrix on interior nodes, non-dimensional: residual = A x_u - b.
-        col_of = np.full(n, -1, dtype=np.int64)
+
+    def _observation_matrix(self) -> None:
+        """Non-dimensional observation on interior nodes: residual = A x_u - b (R x ni)."""
+        R, ni = self.n_rays, len(self.interior)
+        col_of = np.full(self.n, -1, dtype=np.int64)
         col_of[self.interior] = np.arange(ni)
-        cc = col_of[corners]
-        vals = (a / s.sigma) * S / cosn[:, None]
+        self._ray_cols = cc = col_of[self._ray_nodes]
+        self._ray_vals = vals = (
+            (self.length / self.settings.sigma) * self._ray_bary / self._ray_cos[:, None]
+        )
         m_int = cc >= 0
         rr = np.repeat(np.arange(R), 3).reshape(R, 3)
         self._A_obs = sp.csr_matrix((vals[m_int], (rr[m_int], cc[m_int])), shape=(R, ni))
-        self._ray_nodes = corners
 
-        # P pattern: triu(A^T A) + diagonal on every variable; P.data = C w / R + reg.
-        nv = 2 * ni + 1
-        self.nv = nv
+    def _objective(self) -> sp.csc_matrix:
+        """P's pattern, triu(A^T A) + the diagonal, and the map C from ray weights w to its
+        values (P.data = C w / R + reg), so an invalid pixel changes only P's values."""
+        ni = len(self.interior)
+        self.nv = nv = 2 * ni + 1
         AtA = (self._A_obs.T @ self._A_obs).tocsc()
         pat = sp.triu(
             sp.block_diag([AtA, sp.csc_matrix((ni + 1, ni + 1))]) + sp.identity(nv), format="csc"
         )
         pat.sort_indices()
-        pat_rows = pat.indices.astype(np.int64)
         pat_cols = np.repeat(np.arange(nv), np.diff(pat.indptr))
-        keys = pat_cols * nv + pat_rows
+        keys = pat_cols * nv + pat.indices.astype(np.int64)
+        self._C = self._weight_map(keys)
+        diag_idx = np.searchsorted(keys, np.arange(nv) * nv + np.arange(nv))
+        self._reg = np.zeros(len(keys))
+        self._reg[diag_idx] = self.settings.regularization
+        self._P_pattern = pat
+        self._w = np.ones(self.n_rays)
+        P = pat.copy()
+        P.data = self._P_data(self._w)
+        return P
+
+    def _weight_map(self, keys: NDArray[np.int64]) -> sp.csr_matrix:
+        """C (nnz(P) x R): entry (k, r) is ray r's contribution to P's k-th stored value."""
+        cc, vals, nv = self._ray_cols, self._ray_vals, self.nv
         cr_, rr_, vv_ = [], [], []
         for p in range(3):
             for q in range(3):
@@ -301,25 +329,19 @@ class FrictionlessEstimator:
                 cr_.append(pos)
                 rr_.append(ridx)
                 vv_.append(vals[ridx, p] * vals[ridx, q])
-        self._C = sp.csr_matrix(
+        return sp.csr_matrix(
             (np.concatenate(vv_), (np.concatenate(cr_), np.concatenate(rr_))),
-            shape=(len(keys), R),
+            shape=(len(keys), self.n_rays),
         )
-        diag_idx = np.searchsorted(keys, np.arange(nv) * nv + np.arange(nv))
-        self._reg = np.zeros(len(keys))
-        self._reg[diag_idx] = s.regularization
-        self._P_pattern = pat
-        self._w = np.ones(R)
-        P = pat.copy()
-        P.data = self._P_data(self._w)
 
-        # Constraints: equilibrium rows / scaled area, gas row, pc <= 0.
+    def _constraints(self, V: NDArray, T: NDArray) -> sp.csc_matrix:
+        """Equilibrium rows (each divided by its node's scaled area), the gas row, pc <= 0."""
+        s, a, ni = self.settings, self.length, len(self.interior)
         L = cotangent_laplacian(V, T)
         abar = self.areas[self.interior] / a**2
         L_II = sp.diags(1.0 / abar) @ L[self.interior][:, self.interior]
         I_n = sp.identity(ni)
-        one = np.ones((ni, 1))
-        eq = sp.hstack([L_II, -I_n, -one])
+        eq = sp.hstack([L_II, -I_n, -np.ones((ni, 1))])
         gamma = self.P0 * a * a / (self.V0 * self.T0)
         if s.use_measured_pressure:
             gas = sp.hstack([sp.csr_matrix((1, 2 * ni)), sp.csr_matrix([[1.0]])])
@@ -332,16 +354,22 @@ class FrictionlessEstimator:
                 ]  # fmt: skip
             )
         bound = sp.hstack([sp.csr_matrix((ni, ni)), I_n, sp.csr_matrix((ni, 1))])
-        Acon = sp.vstack([eq, gas, bound]).tocsc()
         self._l = np.concatenate([np.zeros(ni + 1), np.full(ni, -np.inf)])
         self._u = np.zeros(2 * ni + 1)
+        return sp.vstack([eq, gas, bound]).tocsc()
+
+    def _setup_solver(self, P: sp.csc_matrix, Acon: sp.csc_matrix) -> None:
+        """OSQP, set up once; per frame only q (and P's values) change."""
+        import osqp
+
+        s = self.settings
         extra: dict[str, Any] = {}
         if s.time_limit_s > 0:
             extra["time_limit"] = s.time_limit_s
         self._solver = osqp.OSQP()
         self._solver.setup(
             P,
-            np.zeros(nv),
+            np.zeros(self.nv),
             Acon,
             self._l,
             self._u,
@@ -354,8 +382,6 @@ class FrictionlessEstimator:
             warm_starting=True,
             verbose=False,
         )
-        self.setup_time_ms = 1e3 * (time.perf_counter() - t_setup)
-        self.last_info: Any = None
 
     def reconfigure(self, k_const: float | None = None, k_linear: float | None = None) -> None:
         """Change the contact threshold constants (Pa, -); the QP is unaffected."""
@@ -374,8 +400,29 @@ class FrictionlessEstimator:
         Returns an ``Estimate`` (node_forces N x 3 in N, contact_pressure N x 3 in Pa,
         normal_pressure N in Pa inward positive, contact, net_force, displacements N x 3 m).
         """
-        s = self.settings
         t0 = time.perf_counter()
+        w = self._update(depth, pressure_pa)
+        t1 = time.perf_counter()
+        res = self._solver.solve(raise_error=False)
+        t2 = time.perf_counter()
+        x = res.x
+        if x is None or not np.all(np.isfinite(x)):
+            x = np.zeros(self.nv)
+        self.last_info = info = self._info(res.info)
+        self.last_pv = float(x[-1]) * self.pressure_scale
+        est = self._estimate(x, w, info)
+        est.timings_ms = {
+            "flow": 0.0,
+            "lift": 1e3 * (t1 - t0),
+            "solve": 1e3 * (t2 - t1),
+            "post": 1e3 * (time.perf_counter() - t2),
+        }
+        return est
+
+    def _update(self, depth: NDArray, pressure_pa: float) -> NDArray[np.float64]:
+        """Pass the frame's observation to OSQP (q, and P's values when the valid pixels
+        changed); returns the ray weights w (1 valid, 0 dropped)."""
+        s = self.settings
         depth = np.asarray(depth)
         if depth.shape != (self.camera.height, self.camera.width):
             raise ValueError(
@@ -395,20 +442,30 @@ class FrictionlessEstimator:
         if not np.array_equal(w, self._w):
             update["Px"] = self._P_data(w)
             self._w = w
-        dp = float(pressure_pa) - self.reference_pressure_pa
         if s.use_measured_pressure:
+            dp = float(pressure_pa) - self.reference_pressure_pa
             if not np.isfinite(dp):
                 raise ValueError(f"pressure must be finite, got {pressure_pa}")
             self._l[ni] = self._u[ni] = dp / self.pressure_scale
             update["l"], update["u"] = self._l, self._u
         self._solver.update(**update)
-        t1 = time.perf_counter()
-        res = self._solver.solve(raise_error=False)
-        t2 = time.perf_counter()
-        status = _STATUS.get(str(res.info.status), str(res.info.status))
-        x = res.x
-        if x is None or not np.all(np.isfinite(x)):
-            x = np.zeros(self.nv)
+        return w
+
+    @staticmethod
+    def _info(info: Any) -> SolverInfo:
+        return SolverInfo(
+            status=_STATUS.get(str(info.status), str(info.status)),  # type: ignore[arg-type]  # an unmapped OSQP status passes through verbatim
+            iterations=int(info.iter),
+            primal_residual=float(info.prim_res),
+            dual_residual=float(info.dual_res),
+            objective=float(info.obj_val),
+            setup_time_ms=1e3 * float(info.setup_time),
+            solve_time_ms=1e3 * float(info.solve_time),
+        )
+
+    def _estimate(self, x: NDArray[np.float64], w: NDArray[np.float64], info: SolverInfo) -> Any:
+        """Node displacements, contact pressures and forces from the QP's solution x."""
+        ni = len(self.interior)
         u = np.zeros(self.n)
         u[self.interior] = self.length * x[:ni]
         pc = np.zeros(self.n)
@@ -416,38 +473,17 @@ class FrictionlessEstimator:
         contact_pressure = pc[:, None] * self.normals
         F = self.areas[:, None] * contact_pressure
         p = -pc
-        contact = contact_mask(p, self.areas, self.k_const, self.k_linear)
-        interior_mask = np.ones(self.n, dtype=bool)
-        interior_mask[self.boundary] = False
         seen = np.zeros(self.n, dtype=bool)
         seen[self._ray_nodes[w > 0].ravel()] = True
-        t3 = time.perf_counter()
-        info = SolverInfo(
-            status=status,  # type: ignore[arg-type]  # an unmapped OSQP status passes through verbatim
-            iterations=int(res.info.iter),
-            primal_residual=float(res.info.prim_res),
-            dual_residual=float(res.info.dual_res),
-            objective=float(res.info.obj_val),
-            setup_time_ms=1e3 * float(res.info.setup_time),
-            solve_time_ms=1e3 * float(res.info.solve_time),
-        )
-        self.last_info = info
-        self.last_pv = float(x[2 * ni]) * self.pressure_scale
         return Estimate(
             node_forces=F,
             contact_pressure=contact_pressure,
             normal_pressure=p,
-            contact=contact,
-            net_force=F[interior_mask].sum(axis=0),
+            contact=contact_mask(p, self.areas, self.k_const, self.k_linear),
+            net_force=F[self.interior].sum(axis=0),
             displacements=u[:, None] * self.normals,
             info=info,
-            timings_ms={
-                "flow": 0.0,
-                "lift": 1e3 * (t1 - t0),
-                "solve": 1e3 * (t2 - t1),
-                "post": 1e3 * (t3 - t2),
-            },
-            valid_node_fraction=float(seen[self.interior].mean()) if len(self.interior) else 1.0,
+            valid_node_fraction=float(seen[self.interior].mean()) if ni else 1.0,
         )
 
     def process(self, frame: Any) -> Any:

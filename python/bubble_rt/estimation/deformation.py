@@ -1,4 +1,4 @@
-"""Node displacements from RGBD frames (method.md section 1).
+"""Node displacements from RGBD frames (docs/deformation.md).
 
 For every mesh node: project its reference position into the camera, sample the dense optical
 flow (reference RGB -> current RGB) there, lift the displaced pixel to 3D through the current,
@@ -20,12 +20,19 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
+from bubble_rt.estimation.lifting import (
+    harmonic_fill,
+    leave_one_out_residual,
+    lift,
+    mesh_laplacian,
+    neighbour_outliers,
+    neighbour_table,
+)
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS, IMAGE_FLOW_METHODS
+from bubble_rt.estimation.params import FLOW_SCALE
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 
@@ -54,7 +61,7 @@ class FlowSettings:
             "farneback" (the Farneback fields below), "farneback_heavy" (the public
             implementation's set, FARNEBACK_PUBLIC), or "oracle" (simulator ground truth, no
             images; the simulator provides that tracker).
-        scale: images are resized by this factor (0 < scale <= 1) before the flow.
+        scale: images are resized by this factor (``params.FLOW_SCALE``) before the flow.
         margin_px: margin (pixels) around the box the mesh projects into; flow is computed
             only inside that region.
         forward_backward: also compute the backward flow and flag nodes whose round trip
@@ -112,8 +119,9 @@ class FlowSettings:
     def __post_init__(self) -> None:
         if self.method not in FLOW_METHODS:
             raise ValueError(f"flow method {self.method!r} unknown; choose one of {FLOW_METHODS}")
-        if not 0 < self.scale <= 1:
-            raise ValueError(f"flow scale must be in (0, 1], got {self.scale}")
+        problem = FLOW_SCALE.problem(self.scale)
+        if problem is not None:
+            raise ValueError(f"flow scale {problem}")
         if self.margin_px < 0:
             raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
         if self.jump_m is not None and not self.jump_m > 0:
@@ -197,6 +205,7 @@ class Deformation:
         timings_ms: {"flow": ms, "lift": ms}.
         flags: N uint8 reason bits (FLAG_*), 0 for valid nodes.
         flow: N x 2 flow sampled at the node projections (pixels), zeros for oracle.
+        degraded_reasons: why the frame's input is implausible (set by the Pipeline's checks).
     """
 
     U: NDArray[np.float64]
@@ -206,45 +215,7 @@ class Deformation:
     timings_ms: dict[str, float] = field(default_factory=dict)
     flags: NDArray[np.uint8] | None = None
     flow: NDArray[np.float64] | None = None
-
-
-def mesh_laplacian(mesh: Mesh) -> sp.csr_matrix:
-    """Uniform graph Laplacian (N x N, D - A) of the mesh edges."""
-    A = mesh.adjacency()
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return (sp.diags(deg) - A).tocsr()
-
-
-_DENSE_FILL_MAX = 150
-
-
-def harmonic_fill(
-    L: sp.csr_matrix, values: NDArray[np.float64], known: NDArray[np.bool_]
-) -> NDArray[np.float64]:
-    """Replace rows of ``values`` (N x k) where ``known`` is False by the harmonic interpolant
-    of the known rows over the graph Laplacian ``L``. Unknown nodes cut off from every known
-    node get 0 (a tiny diagonal shift keeps their block non-singular)."""
-    out = np.array(values, dtype=np.float64, copy=True)
-    unknown = ~known
-    if not unknown.any():
-        return out
-    if not known.any():
-        out[:] = 0.0
-        return out
-    iu = np.flatnonzero(unknown)
-    ik = np.flatnonzero(known)
-    rhs = -(L[iu][:, ik] @ out[ik])
-    if len(iu) <= _DENSE_FILL_MAX:
-        # A few flagged nodes per frame is the usual case: a dense solve is microseconds where
-        # SciPy's sparse setup costs about a millisecond.
-        Luu_d = L[iu][:, iu].toarray() + 1e-9 * np.eye(len(iu))
-        sol = np.linalg.solve(Luu_d, rhs.reshape(len(iu), -1))
-    else:
-        Luu = L[iu][:, iu] + sp.identity(len(iu), format="csr") * 1e-9
-        sol = spla.spsolve(Luu.tocsc(), rhs)
-    out[iu] = np.asarray(sol).reshape(len(iu), -1)
-    out[~np.isfinite(out)] = 0.0
-    return out
+    degraded_reasons: list[str] = field(default_factory=list)
 
 
 def _roi(uv: NDArray, ok: NDArray, camera: Camera, margin: int) -> tuple[int, int, int, int]:
@@ -310,7 +281,7 @@ class NodeTracker:
         self._laplacian = mesh_laplacian(mesh)
         self._rim = np.zeros(mesh.n_nodes, bool)
         self._rim[mesh.boundary] = True
-        self._neighbours = _neighbour_table(self._laplacian)
+        self._neighbours = neighbour_table(self._laplacian)
         self.rays: NDArray[np.float64] | None = None
         self._previous = np.zeros_like(self.x_ref)
 
@@ -365,7 +336,7 @@ class NodeTracker:
         with np.errstate(invalid="ignore"):
             flags[np.linalg.norm(U, axis=1) > s.max_displacement_m] |= FLAG_OUTLIER
         if s.outlier_m is not None:
-            flags[_neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
+            flags[neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
         known = flags == 0
         Uk = U.copy()
         if s.clamp_rim:
@@ -464,7 +435,7 @@ class DeformationTracker(NodeTracker):
     # ------------------------------------------------------------------ helpers
     def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
         s = self.settings
-        return _lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
+        return lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
 
     # ------------------------------------------------------------------ per frame
     def track(self, frame: Frame) -> Deformation:
@@ -489,140 +460,3 @@ class DeformationTracker(NodeTracker):
 
 for _method in IMAGE_FLOW_METHODS:
     register_tracker(_method, DeformationTracker)
-
-
-def _sample_z(depth: NDArray, uv: NDArray) -> NDArray[np.float64]:
-    from scipy.ndimage import map_coordinates
-
-    return map_coordinates(depth, [uv[:, 1], uv[:, 0]], order=1, mode="nearest")
-
-
-def leave_one_out_residual(
-    L: sp.csr_matrix, values: NDArray[np.float64], known: NDArray[np.bool_], nodes: NDArray[np.intp]
-) -> NDArray[np.float64]:
-    """For each of ``nodes`` (known ones), its value minus the harmonic interpolant of all the
-    other known rows at it: how far it sits from what the membrane around it says (k columns
-    of ``values``, N x k). Unknown nodes are eliminated (Kron reduction of ``L`` onto the known
-    set), so the answer holds however many of a node's own neighbours are unmeasured; with
-    every neighbour known it is the value minus the mean of the neighbours.
-
-    Args:
-        L: N x N graph Laplacian (D - A).
-        values: N x k; rows of unknown nodes are ignored.
-        known: N bool.
-        nodes: indices (known nodes) to evaluate.
-
-    Returns:
-        len(nodes) x k residuals (0 for a node cut off from every other known node).
-    """
-    vals = np.asarray(values, dtype=np.float64).reshape(len(known), -1)
-    nodes = np.asarray(nodes, dtype=np.intp)
-    if len(nodes) == 0:
-        return np.zeros((0, vals.shape[1]))
-    xk = np.where(known[:, None], vals, 0.0)
-    Lc = L[nodes]
-    y = np.asarray(Lc @ xk)  # row c of L applied to the known values
-    d = np.asarray(Lc[:, nodes].diagonal(), dtype=np.float64).copy()
-    iu = np.flatnonzero(~known)
-    if len(iu):
-        # Eliminate the unknown nodes: L~_CK = L_CK - L_CS L_SS^-1 L_SK.
-        Lcs = Lc[:, iu].toarray()
-        if Lcs.any():
-            Lss = L[iu][:, iu].toarray() + 1e-9 * np.eye(len(iu))
-            W = np.linalg.solve(Lss, Lcs.T)  # |S| x |C|
-            Lsk = L[iu]
-            y -= W.T @ np.asarray(Lsk @ xk)
-            d -= np.einsum("sc,sc->c", W, Lcs.T)
-    out = np.zeros_like(y)
-    ok = d > 1e-9
-    out[ok] = y[ok] / d[ok, None]
-    return out
-
-
-def _neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:
-    """N x max_degree neighbour indices from a Laplacian, padded with -1."""
-    n = L.shape[0]
-    rows = [[j for j in L.indices[L.indptr[i] : L.indptr[i + 1]] if j != i] for i in range(n)]
-    width = max(len(r) for r in rows)
-    out = np.full((n, width), -1, dtype=np.intp)
-    for i, r in enumerate(rows):
-        out[i, : len(r)] = r
-    return out
-
-
-def _neighbour_outliers(
-    U: NDArray, measured: NDArray[np.bool_], nb: NDArray[np.intp], tol: float
-) -> NDArray[np.bool_]:
-    """Measured nodes whose U is further than ``tol`` from the component-wise median of their
-    measured neighbours (needs at least two of them)."""
-    ok = (nb >= 0) & measured[np.maximum(nb, 0)]
-    G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
-    count = ok.sum(axis=1)
-    enough = count >= 2
-    # nanmedian by sorting (NaNs sort last): several times faster than np.nanmedian here.
-    G.sort(axis=1)
-    rows = np.arange(len(U))
-    lo = G[rows, np.maximum(count - 1, 0) // 2]
-    hi = G[rows, np.maximum(count, 1) // 2 - (count == 0)]
-    med = 0.5 * (lo + hi)
-    dev = np.linalg.norm(U - np.nan_to_num(med), axis=1)
-    return measured & enough & (dev > tol)
-
-
-def lift_pixels(
-    depth: NDArray,
-    uv: NDArray,
-    camera: Camera,
-    *,
-    max_fill_level: int = 3,
-    depth_smoothing: int = 4,
-) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
-    """Back-project pixels through a depth image: the lifting step on its own.
-
-    Args:
-        depth: H x W depth (metres of camera z, 0 / NaN invalid); holes are filled first.
-        uv: N x 2 pixel coordinates (u right, v down; pixel centres at integers).
-        camera: gives intrinsics and the camera -> mesh pose.
-
-    Returns:
-        Mesh-frame points (N x 3, metres; zeros where flagged) and FLAG_* bits (N uint8).
-    """
-    d = np.asarray(depth, dtype=np.float32)
-    if d.shape != (camera.height, camera.width):
-        raise FrameError(
-            f"depth shape {d.shape} differs from the camera's {camera.height} x {camera.width}"
-        )
-    pts, flags = _lift(
-        d, np.asarray(uv, dtype=np.float64).reshape(-1, 2), camera, max_fill_level, depth_smoothing
-    )
-    pts[flags != 0] = 0.0
-    return pts, flags
-
-
-def _lift(
-    depth: NDArray, uv: NDArray, cam: Camera, max_fill_level: int, smoothing: int
-) -> tuple[NDArray, NDArray]:
-    """Mesh-frame points (N x 3) of pixels through a hole-filled depth map, and flags."""
-    from bubble_rt import _core
-
-    filled, level = _core._fill_depth(
-        np.ascontiguousarray(depth, dtype=np.float32), smoothing, max_fill_level + 1
-    )
-    pts, flags = _core._lift_pixels(
-        filled,
-        level,
-        np.ascontiguousarray(uv, dtype=np.float64),
-        cam.fx,
-        cam.fy,
-        cam.cx,
-        cam.cy,
-        max_fill_level,
-    )
-    flags = np.asarray(flags, dtype=np.uint8).copy()
-    pts = np.asarray(pts)
-    if cam.has_distortion:
-        # The C++ lift is pinhole; with distortion re-project the sampled depths exactly.
-        ok = flags == 0
-        pts = np.zeros((len(uv), 3))
-        pts[ok] = cam.to_camera(cam.backproject(uv[ok], _sample_z(filled, uv[ok])))
-    return cam.to_mesh(pts), flags

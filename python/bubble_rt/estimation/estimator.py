@@ -1,4 +1,4 @@
-"""Force and contact estimation from nodal displacements (method.md sections 2-3).
+"""Force and contact estimation from nodal displacements (docs/method.md).
 
 ``ForceEstimator.estimate(U, dp)`` runs three steps on the measured displacements:
 
@@ -24,13 +24,14 @@ import dataclasses
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bubble_rt import _validate
 from bubble_rt.estimation.membrane import Material, MembraneModel
+from bubble_rt.estimation.params import ESTIMATOR_PARAMS
 from bubble_rt.estimation.solver import GroupLassoSolver, SolverInfo, SolverSettings
 from bubble_rt.estimation.types import Estimate
 from bubble_rt.mesh import Mesh
@@ -44,8 +45,10 @@ __all__ = [
     "config_changes",
 ]
 
-#: Membrane material of the default estimator: the simulator's bubble (bubble_rt.sensor.SIM).
-DEFAULT_MATERIAL = Material(E=SIM.youngs_modulus, nu=SIM.poisson, thickness=SIM.thickness)
+#: Membrane material of the default estimator (the declared defaults: the simulator's bubble).
+DEFAULT_MATERIAL = Material(
+    **{p.material: p.default for p in ESTIMATOR_PARAMS.values() if p.material is not None}
+)
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
 #: A node is in the lasso's support when its multiplier is within this of its weight.
@@ -79,13 +82,13 @@ class EstimatorConfig:
     """
 
     material: Material = field(default_factory=lambda: DEFAULT_MATERIAL)
-    k_f: float = 0.05
-    k_u: float = 537592.0
-    k_const: float = 2000.0
-    k_linear: float = 2.0
+    k_f: float = ESTIMATOR_PARAMS["k_f"].default
+    k_u: float = ESTIMATOR_PARAMS["k_u"].default
+    k_const: float = ESTIMATOR_PARAMS["k_const"].default
+    k_linear: float = ESTIMATOR_PARAMS["k_linear"].default
     k_peak: float = 0.5
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
-    ambient_pa: float = SIM.ambient_pa
+    ambient_pa: float = ESTIMATOR_PARAMS["ambient_pa"].default
     solver: SolverSettings = field(default_factory=SolverSettings)
 
     def __post_init__(self) -> None:
@@ -102,26 +105,27 @@ class EstimatorConfig:
         _validate.positive("ambient_pa", self.ambient_pa)
 
     def gauge_pressure(self, reference_pressure_pa: float | None) -> float:
-        """Rest gauge pressure (Pa) from a reference pressure reading (absolute above 30 kPa,
-        else gauge); ``inflation_pa`` when there is none or it is not positive."""
-        if reference_pressure_pa is None or not np.isfinite(reference_pressure_pa):
-            return self.inflation_pa
-        p = float(reference_pressure_pa)
-        gauge = p - self.ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
-        return gauge if gauge > 0 else self.inflation_pa
+        """Rest gauge pressure (Pa) from a reference pressure reading (``rest_gauge_pa``);
+        ``inflation_pa`` when there is none or it is not positive."""
+        gauge = rest_gauge_pa(reference_pressure_pa, self.ambient_pa)
+        return gauge if gauge is not None else self.inflation_pa
+
+
+def rest_gauge_pa(reading_pa: float | None, ambient_pa: float) -> float | None:
+    """The rule every estimator uses for the rest gauge pressure (Pa): a reading above
+    ``ABSOLUTE_PRESSURE_MIN`` is absolute (minus ``ambient_pa``), else already gauge; None
+    when there is no finite reading or the gauge pressure is not positive."""
+    if reading_pa is None or not np.isfinite(reading_pa):
+        return None
+    p = float(reading_pa)
+    gauge = p - ambient_pa if p > ABSOLUTE_PRESSURE_MIN else p
+    return gauge if gauge > 0 else None
 
 
 #: The TOML ``[estimator]`` keys (daemon config, ``set_params``, ``bubble-rt calibrate``'s output)
 #: and the EstimatorConfig field each one sets: (field, material field or None).
 CONFIG_KEYS: dict[str, tuple[str, str | None]] = {
-    "k_f": ("k_f", None),
-    "k_u": ("k_u", None),
-    "k_const": ("k_const", None),
-    "k_linear": ("k_linear", None),
-    "youngs_modulus": ("material", "E"),
-    "poisson": ("material", "nu"),
-    "thickness": ("material", "thickness"),
-    "ambient_pa": ("ambient_pa", None),
+    k: (p.field, p.material) for k, p in ESTIMATOR_PARAMS.items()
 }
 
 
@@ -145,10 +149,6 @@ def config_changes(config: EstimatorConfig, values: Mapping[str, float]) -> dict
     return changes
 
 
-class _Tracker(Protocol):
-    def track(self, frame: Any) -> Any: ...
-
-
 class ForceEstimator:
     """FEM estimator: inflated linear membrane, group lasso (ADMM core), refit on its support.
 
@@ -156,7 +156,7 @@ class ForceEstimator:
         mesh: reference Mesh.
         config: EstimatorConfig in use.
         inflation_pa: rest gauge pressure the model is linearised about (Pa): the reference's
-            (given here or by an attached tracker), else ``config.inflation_pa``.
+            (given here), else ``config.inflation_pa``.
         model: MembraneModel (rebuilt when the material or the rest pressure changes).
         solver: GroupLassoSolver (warm-started across calls).
     """
@@ -167,7 +167,6 @@ class ForceEstimator:
         self.mesh = mesh
         self.config = config or EstimatorConfig()
         self._interior = np.ascontiguousarray(mesh.interior, dtype=bool)
-        self._tracker: _Tracker | None = None
         #: the reference's pressure reading (Pa, absolute or gauge; None: no reference)
         self.reference_pressure_pa: float | None = getattr(reference, "pressure_pa", None)
         self._build(self.config.gauge_pressure(self.reference_pressure_pa))
@@ -258,30 +257,3 @@ class ForceEstimator:
             if new.solver != self.config.solver:
                 self.solver.set_settings(new.solver)
         self.config = new
-
-    def attach(self, tracker: _Tracker) -> None:
-        """Use ``tracker.track(frame) -> Deformation`` (U, dp, valid_fraction, timings_ms).
-
-        A tracker with a ``reference`` (pressure_pa) sets the rest gauge pressure the model is
-        linearised about (rebuilt if it moved by more than 1 Pa)."""
-        if not hasattr(tracker, "track"):
-            raise ValueError("tracker must have a track(frame) method")
-        self._tracker = tracker
-        ref = getattr(tracker, "reference", None)
-        if ref is not None:
-            self.reference_pressure_pa = getattr(ref, "pressure_pa", None)
-            gauge = self.config.gauge_pressure(self.reference_pressure_pa)
-            if abs(gauge - self.inflation_pa) > 1.0:
-                self._build(gauge)
-
-    def process(self, frame: Any) -> Estimate:
-        """Track the frame with the attached tracker, then estimate."""
-        if self._tracker is None:
-            raise RuntimeError("no deformation tracker attached: call attach(tracker) first")
-        d = self._tracker.track(frame)
-        est = self.estimate(d.U, d.dp)
-        timings = dict(getattr(d, "timings_ms", {}) or {})
-        timings.update(est.timings_ms)
-        est.timings_ms = timings
-        est.valid_node_fraction = float(getattr(d, "valid_fraction", 1.0))
-        return est

@@ -5,7 +5,7 @@ point cloud and evens it out):
 
 1. The camera pose (``camera.pose``, camera -> mesh frame) places the template's footprint:
    the rim plane is z = 0 of the mesh frame. For the simulator and the default camera this is
-   known; for the public Punyo recording it comes from :func:`punyo_pose` (see recordings.py).
+   known; for the public Punyo recording it comes from :func:`punyo_pose` (``bubble_rt.io.punyo``).
 2. Every interior node keeps its footprint position (x, y) and slides along the mesh z axis
    until it meets the observed surface: the hole-filled reference depth map, bilinear, solved
    per node by a secant iteration on ``z_cam(x, y, h) - depth(project(x, y, h))``.
@@ -27,12 +27,12 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
 from bubble_rt.camera import Camera
-from bubble_rt.estimation.deformation import (
-    Reference,
-    _neighbour_outliers,
-    _neighbour_table,
+from bubble_rt.estimation.deformation import Reference
+from bubble_rt.estimation.lifting import (
     harmonic_fill,
     mesh_laplacian,
+    neighbour_outliers,
+    neighbour_table,
 )
 from bubble_rt.frames import FrameError
 from bubble_rt.mesh import Mesh, MeshGeometry
@@ -143,7 +143,7 @@ def fit_mesh(
     rim = np.zeros(template.n_nodes, bool)
     rim[template.boundary] = True
     L = mesh_laplacian(template)
-    nb = _neighbour_table(L)
+    nb = neighbour_table(L)
 
     def place(xy: NDArray, h_start: NDArray) -> tuple[NDArray, NDArray]:
         h, ok = surf.lift(xy, h_start)
@@ -151,7 +151,7 @@ def fit_mesh(
         off = np.where(ok, h - V0[:, 2], 0.0)
         # Occluder edges and depth glitches: heights out of line with their neighbours.
         for _ in range(3):
-            bad = _neighbour_outliers(np.column_stack([off, 0 * off, 0 * off]), ok, nb, outlier_m)
+            bad = neighbour_outliers(np.column_stack([off, 0 * off, 0 * off]), ok, nb, outlier_m)
             if not bad.any():
                 break
             ok &= ~bad

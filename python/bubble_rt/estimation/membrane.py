@@ -1,4 +1,5 @@
-"""Linear plane-stress membrane model (method.md section 2), backed by the C++ core.
+"""Linear plane-stress membrane model, backed by the C++ core (docs/method.md, "Inflated
+membrane model").
 
 Units: metres, pascals, newtons. Sign convention: ``F_ext(U, dp) = K U - dp * a_i * n_i`` is
 the force the object applies on each node; normal pressure ``p_i = -n_i . F_i / a_i`` is
@@ -45,6 +46,8 @@ class Material:
         _validate.positive("E", self.E)
         _validate.positive("thickness", self.thickness)
         nu = _validate.finite_scalar("nu", self.nu)
+        # What the formulas admit (the C++ core checks the same). The product accepts less from
+        # a user, [0, 0.5] for rubber (estimation.params); tests use other units and values.
         if not -1.0 < nu <= 0.5:
             raise ValueError(f"nu must be in (-1, 0.5], got {nu}")
 

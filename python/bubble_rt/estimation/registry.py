@@ -19,6 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from bubble_rt.estimation.params import LIVE_PARAMS
+
 #: (mesh, config: EstimatorConfig, camera, reference) -> estimator
 Builder = Callable[[Any, Any, Any, Any], Any]
 
@@ -88,7 +90,7 @@ register_estimator(
     EstimatorKind(
         "fem",
         _fem,
-        params=("k_f", "k_u", "youngs_modulus", "k_const", "k_linear"),
+        params=LIVE_PARAMS,
         description="FEM membrane + group-lasso ADMM (the product)",
     )
 )

@@ -1,4 +1,5 @@
-"""Warm-started ADMM solver for the regularised force estimate (method.md section 3).
+"""Warm-started ADMM solver for the regularised force estimate (docs/method.md, "How the
+solver works").
 
 Solves, per frame,
 

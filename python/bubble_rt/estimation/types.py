@@ -28,6 +28,8 @@ class Estimate:
         valid_node_fraction: fraction of nodes the deformation stage measured (1.0 for U given).
         support: (N,) bool, the group lasso's support (interior nodes that carry force; empty
             for estimators without one).
+        degraded_reasons: why the input or the result is implausible
+            (:mod:`bubble_rt.estimation.plausibility`); empty for a healthy frame.
     """
 
     node_forces: NDArray[np.float64]
@@ -40,3 +42,4 @@ class Estimate:
     timings_ms: dict[str, float] = field(default_factory=dict)
     valid_node_fraction: float = 1.0
     support: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    degraded_reasons: list[str] = field(default_factory=list)

@@ -268,90 +268,13 @@ def run_bench(
         meshes[name] = estimator_mesh(name, traj)
         gts[name] = [np.asarray(f.truth.contact_mask(meshes[name]), bool) for f in frames_all]
 
-    default_flow = settings.flow_methods[0]
-    timed = frames_all[settings.warmup : settings.warmup + settings.frames]
     for name in settings.meshes:
-        mesh = meshes[name]
-        gt = gts[name][settings.warmup : settings.warmup + settings.frames]
-        entry: dict[str, Any] = {"nodes": int(mesh.n_nodes), "flows": {}}
-        for method in settings.flow_methods:
-            st = run_product(
-                mesh,
-                traj,
-                frames_all[: settings.warmup + settings.frames],
-                flow=_flow_settings(method),
-                config=base_config,
-                warmup=settings.warmup,
-                gt_masks=gts[name][: settings.warmup + settings.frames],
-            )
-            summ = st.summary()
-            entry["flows"][method] = summ
-            log(
-                f"  {name:6s} {mesh.n_nodes:4d} nodes  {method:14s} "
-                f"{summ['hz']:7.1f} Hz  p50 {summ['latency_ms']['p50']:7.2f} ms  "
-                f"p99 {summ['latency_ms']['p99']:7.2f} ms  err {summ['force_err_n']:.2f} N  "
-                f"mIoU {summ['miou']:.3f}"
-            )
-            if method == default_flow:
-                default_stats = st
-        d = entry["flows"][default_flow]
-        entry.update(
-            {
-                "hz": d["hz"],
-                "latency_ms": d["latency_ms"],
-                "stages_ms": d["stages_ms"],
-                "iterations": d["iterations"],
-                "force_err_n": d["force_err_n"],
-                "miou": d["miou"],
-                "reference_ms": None,
-                "speedup": None,
-            }
+        entry, default_stats = _bench_mesh(
+            settings, traj, meshes[name], gts[name], base_config, name, log
         )
         if name in settings.reference_meshes and settings.reference_frames > 0:
-            # One untimed warm-up frame, then frames spread over the second half of the timed
-            # set (the contact phase), where the outputs are worth comparing.
-            n_t = len(timed)
-            sel = np.unique(
-                np.linspace(n_t // 2, n_t - 1, min(settings.reference_frames, n_t)).astype(int)
-            )
-            n_ref = len(sel)
-            ref = run_reference(
-                mesh,
-                traj,
-                [timed[0]] + [timed[i] for i in sel],
-                gt_masks=[gt[0]] + [gt[i] for i in sel],
-            )
-            rs = ref.summary()
-            diffs = [
-                float(np.linalg.norm(a - default_stats.net_forces[i]))
-                for a, i in zip(ref.net_forces, sel, strict=True)
-            ]
-            agree = [
-                contact_iou(a, default_stats.contacts[i])
-                for a, i in zip(ref.contacts, sel, strict=True)
-            ]
-            agree = [v for v in agree if not math.isnan(v)]
-            prod_err = float(np.mean([default_stats.force_err[i] for i in sel]))
-            entry.update(
-                {
-                    "reference_ms": rs["latency_ms"]["p50"],
-                    "speedup": rs["latency_ms"]["p50"] / d["latency_ms"]["p50"],
-                    "reference": {
-                        "latency_ms": rs["latency_ms"],
-                        "stages_ms": rs["stages_ms"],
-                        "frames": n_ref,
-                        "force_err_n": rs["force_err_n"],
-                        "miou": rs["miou"],
-                        "product_force_err_n_same_frames": prod_err,
-                        "net_force_diff_n": float(np.mean(diffs)) if diffs else None,
-                        "contact_iou_vs_product": float(np.mean(agree)) if agree else None,
-                    },
-                }
-            )
-            log(
-                f"  {name:6s} reference {rs['latency_ms']['p50']:.0f} ms/frame -> speedup "
-                f"{entry['speedup']:.1f}x; |f_ref - f| {entry['reference']['net_force_diff_n']:.3f}"
-                f" N; err ref {rs['force_err_n']:.2f} N vs product {prod_err:.2f} N"
+            _bench_reference(
+                settings, traj, meshes[name], gts[name], entry, default_stats, name, log
             )
         result["meshes"][name] = entry
 
@@ -362,6 +285,101 @@ def run_bench(
             p["pareto"] = i in front
     result["seconds"] = time.perf_counter() - t_start
     return result
+
+
+def _bench_mesh(
+    settings: BenchSettings,
+    traj: SimTrajectory,
+    mesh: Any,
+    gt: list[np.ndarray],
+    base_config: Any,
+    name: str,
+    log: Any,
+) -> tuple[dict[str, Any], Any]:
+    """The product on one mesh with every flow method; the entry reports the first (the
+    default) method's figures, which are also returned as run stats for the reference."""
+    n = settings.warmup + settings.frames
+    entry: dict[str, Any] = {"nodes": int(mesh.n_nodes), "flows": {}}
+    default_flow = settings.flow_methods[0]
+    for method in settings.flow_methods:
+        st = run_product(
+            mesh,
+            traj,
+            traj.frames[:n],
+            flow=_flow_settings(method),
+            config=base_config,
+            warmup=settings.warmup,
+            gt_masks=gt[:n],
+        )
+        summ = st.summary()
+        entry["flows"][method] = summ
+        log(
+            f"  {name:6s} {mesh.n_nodes:4d} nodes  {method:14s} "
+            f"{summ['hz']:7.1f} Hz  p50 {summ['latency_ms']['p50']:7.2f} ms  "
+            f"p99 {summ['latency_ms']['p99']:7.2f} ms  err {summ['force_err_n']:.2f} N  "
+            f"mIoU {summ['miou']:.3f}"
+        )
+        if method == default_flow:
+            default_stats = st
+    d = entry["flows"][default_flow]
+    entry.update({k: d[k] for k in ("hz", "latency_ms", "stages_ms", "iterations")})
+    entry.update(
+        {"force_err_n": d["force_err_n"], "miou": d["miou"], "reference_ms": None, "speedup": None}
+    )
+    return entry, default_stats
+
+
+def _bench_reference(
+    settings: BenchSettings,
+    traj: SimTrajectory,
+    mesh: Any,
+    gt_all: list[np.ndarray],
+    entry: dict[str, Any],
+    product: Any,
+    name: str,
+    log: Any,
+) -> None:
+    """The paper-faithful reference pipeline on the same frames: its time per frame, the
+    speed-up and how far its outputs are from the product's (adds to ``entry``)."""
+    timed = traj.frames[settings.warmup : settings.warmup + settings.frames]
+    gt = gt_all[settings.warmup : settings.warmup + settings.frames]
+    # One untimed warm-up frame, then frames spread over the second half of the timed set
+    # (the contact phase), where the outputs are worth comparing.
+    n_t = len(timed)
+    sel = np.unique(np.linspace(n_t // 2, n_t - 1, min(settings.reference_frames, n_t)).astype(int))
+    ref = run_reference(
+        mesh, traj, [timed[0]] + [timed[i] for i in sel], gt_masks=[gt[0]] + [gt[i] for i in sel]
+    )
+    rs = ref.summary()
+    diffs = [
+        float(np.linalg.norm(a - product.net_forces[i]))
+        for a, i in zip(ref.net_forces, sel, strict=True)
+    ]
+    agree = [contact_iou(a, product.contacts[i]) for a, i in zip(ref.contacts, sel, strict=True)]
+    agree = [v for v in agree if not math.isnan(v)]
+    prod_err = float(np.mean([product.force_err[i] for i in sel]))
+    p50 = entry["latency_ms"]["p50"]
+    entry.update(
+        {
+            "reference_ms": rs["latency_ms"]["p50"],
+            "speedup": rs["latency_ms"]["p50"] / p50,
+            "reference": {
+                "latency_ms": rs["latency_ms"],
+                "stages_ms": rs["stages_ms"],
+                "frames": len(sel),
+                "force_err_n": rs["force_err_n"],
+                "miou": rs["miou"],
+                "product_force_err_n_same_frames": prod_err,
+                "net_force_diff_n": float(np.mean(diffs)) if diffs else None,
+                "contact_iou_vs_product": float(np.mean(agree)) if agree else None,
+            },
+        }
+    )
+    log(
+        f"  {name:6s} reference {rs['latency_ms']['p50']:.0f} ms/frame -> speedup "
+        f"{entry['speedup']:.1f}x; |f_ref - f| {entry['reference']['net_force_diff_n']:.3f}"
+        f" N; err ref {rs['force_err_n']:.2f} N vs product {prod_err:.2f} N"
+    )
 
 
 def run_sweep(

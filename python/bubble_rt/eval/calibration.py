@@ -1,4 +1,4 @@
-"""Calibration of E, k_f and k_u with the paper's loss (method.md section 4).
+"""Calibration of E, k_f and k_u with the paper's loss (docs/evaluation.md, `bubble-rt calibrate`).
 
 Per observation (frame) with ground-truth net force ``f_gt`` (N) and node contact ``c_gt``::
 
@@ -255,8 +255,6 @@ def calibrate(
     simplex / direction size in log units; ``max_evals`` caps loss evaluations.
     """
     names = tuple(params)
-    from scipy.optimize import minimize
-
     p0 = dict(DEFAULTS if initial is None else initial)
     own_fan = fan is None
     fan = fan or FanOut(1)
@@ -282,38 +280,8 @@ def calibrate(
 
     try:
         x0 = np.zeros(len(names))
-        lo = np.full(len(names), -np.log(bound))
-        hi = -lo
-        bounds = list(zip(lo, hi, strict=True))
         f0 = objective(x0)
-        budget = max(1, max_evals - 1)
-        if method.lower() == "powell":
-            minimize(
-                objective,
-                x0,
-                method="Powell",
-                bounds=bounds,
-                options={
-                    "maxfev": budget,
-                    "xtol": 1e-2,
-                    "ftol": 1e-4,
-                    "direc": step * np.eye(len(names)),
-                },
-            )
-        else:
-            simplex = np.vstack([x0, x0 + step * np.eye(len(names))])
-            minimize(
-                objective,
-                x0,
-                method="Nelder-Mead",
-                bounds=bounds,
-                options={
-                    "maxfev": budget,
-                    "initial_simplex": simplex,
-                    "xatol": 1e-2,
-                    "fatol": 1e-4 * max(1.0, abs(f0)),
-                },
-            )
+        _minimize(objective, x0, method, bound, step, max(1, max_evals - 1), f0)
     finally:
         if bar is not None:
             bar.close()
@@ -330,6 +298,39 @@ def calibrate(
         n_frames=len(problem.frames),
         history=history,
     )
+
+
+def _minimize(
+    objective: Callable[[NDArray[np.float64]], float],
+    x0: NDArray[np.float64],
+    method: str,
+    bound: float,
+    step: float,
+    budget: int,
+    f0: float,
+) -> None:
+    """Run SciPy's Powell or Nelder-Mead on the log-parameters within +-log(bound), starting
+    from a simplex / directions of size ``step``; the objective records every evaluation."""
+    from scipy.optimize import minimize
+
+    n = len(x0)
+    bounds = [(-np.log(bound), np.log(bound))] * n
+    if method.lower() == "powell":
+        options: dict[str, Any] = {
+            "maxfev": budget,
+            "xtol": 1e-2,
+            "ftol": 1e-4,
+            "direc": step * np.eye(n),
+        }
+        minimize(objective, x0, method="Powell", bounds=bounds, options=options)
+        return
+    options = {
+        "maxfev": budget,
+        "initial_simplex": np.vstack([x0, x0 + step * np.eye(n)]),
+        "xatol": 1e-2,
+        "fatol": 1e-4 * max(1.0, abs(f0)),
+    }
+    minimize(objective, x0, method="Nelder-Mead", bounds=bounds, options=options)
 
 
 # ------------------------------------------------------------------------- dataset / caching
@@ -469,7 +470,7 @@ def write_config(
         "initial": result.initial_params,
         **(extra or {}),
     }
-    header = "# written by `bubble-rt calibrate` (paper loss, method.md section 4)\n"
+    header = "# written by `bubble-rt calibrate` (paper loss, docs/evaluation.md)\n"
     header += "".join(f"# {k}: {json.dumps(v)}\n" for k, v in info.items())
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(header + tomli_w.dumps(doc))

@@ -27,6 +27,28 @@ Force errors are averaged over all frames of a trajectory (untouched ones includ
 paper's table does; ``force_err_contact_n`` averages over touched frames only (true net force
 at least :data:`UNTOUCHED_N`).
 
+Wrench and patch geometry (frames whose true net force is at least :data:`WRENCH_MIN_N`, 1 N):
+
+- Torque: ``|tau - tau_gt| / |tau_gt|``, tau the estimate's net torque about the mesh origin
+  (``bubble_rt.wrench``: at the mesh's untouched vertices, as the daemon publishes it), tau_gt
+  the simulator's (its contact forces at the nodes' current positions, the physical torque);
+  the median over frames is reported (``torque_rel_err``). ``torque_rel_err_reference``
+  compares with the truth's forces at their untouched positions instead (the published
+  definition), which separates the force field's error from what the dent's motion moves.
+  ``torque_lever_err_mm``: the median of ``|tau - tau_gt| / |f_gt|`` (mm), the torque error as
+  a point-of-action error; it stays meaningful where the true torque is small (a press near
+  the dome's axis), which inflates the relative error.
+- Patch centroid: each true patch carrying at least :data:`PATCH_MIN_N` is matched (largest
+  first) to the nearest unmatched estimated patch; the distance from the truth's force-weighted
+  centroid to the patch's area-weighted ``centroid`` and to its ``pressure_centroid`` (mm), or
+  NaN when no estimated patch is left (counted as missed). Medians over all scored true
+  patches, and the share within :data:`CENTROID_TOL_MM`.
+- Two contacts: frames whose truth has exactly two patches of at least :data:`PATCH_MIN_N`
+  (the ``split`` indenter's two pins, both pressing); found when the estimate has exactly two
+  patches, matched one to one, each patch force within :data:`PATCH_FORCE_TOL` of its true
+  patch's force (``|F - F_gt| <= 0.2 |F_gt|``, vectors: ``two_contact_rate``; magnitudes,
+  ``||F| - |F_gt|| <= 0.2 |F_gt|``: ``two_contact_magnitude_rate``).
+
 Frames whose simulated ground truth did not converge (``truth.converged`` False: the physics
 step failed even in substeps) are still run through the estimators, so warm starts see the
 whole trajectory, but are left out of every statistic and counted in ``n_excluded``: a force
@@ -38,7 +60,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -54,6 +76,14 @@ from bubble_rt.mesh import vertex_normals as vertex_normals
 UNTOUCHED_N = 0.05
 #: Range (N, inclusive) of true net force of a light touch, whose detection rate is reported.
 LIGHT_TOUCH_RANGE_N = (0.1, 1.5)
+#: True net force (N) from which a frame's torque and patches are scored (the issue's 1 N).
+WRENCH_MIN_N = 1.0
+#: Force (N) a true patch must carry to be scored (a grazing second contact below it is a
+#: light touch, not a patch to locate).
+PATCH_MIN_N = 0.5
+#: Patch centroid target (mm) and patch force tolerance (relative) of the two-contact score.
+CENTROID_TOL_MM = 2.0
+PATCH_FORCE_TOL = 0.2
 GEOMETRIES = ("round", "point", "line", "square", "split")
 #: The registered estimator kinds (all are evaluated unless a task names some).
 ESTIMATORS = estimator_kinds()
@@ -135,6 +165,141 @@ class FrameMetrics:
     false_nodes: int
     time_ms: float = float("nan")
     truth_converged: bool = True
+    #: net torque (3,) N m, estimate and truth (empty when not computed)
+    tau_est: list[float] = field(default_factory=list)
+    tau_gt: list[float] = field(default_factory=list)
+    tau_gt_reference: list[float] = field(default_factory=list)
+    #: per scored true patch: centroid errors (mm; NaN = no estimated patch matched)
+    centroid_err_mm: list[float] = field(default_factory=list)
+    pressure_centroid_err_mm: list[float] = field(default_factory=list)
+    #: the truth has two scored patches / the estimate found them (see the module docstring)
+    two_contact: bool = False
+    two_found: bool = False
+    two_found_magnitude: bool = False
+    est_patches: int = 0
+
+
+@dataclass(frozen=True)
+class PatchScore:
+    """What :func:`patch_scores` measures on one frame."""
+
+    centroid_err_mm: list[float]
+    pressure_centroid_err_mm: list[float]
+    two_contact: bool
+    two_found: bool
+    two_found_magnitude: bool
+
+
+def patch_scores(est_patches: Sequence[Any], true_patches: Sequence[Any]) -> PatchScore:
+    """Centroid errors and the two-contact score of one frame (module docstring).
+
+    Args:
+        est_patches: estimated patches (``centroid``, ``pressure_centroid``, ``force``; m, N).
+        true_patches: true patches (``centroid``: force-weighted, m; ``force`` N).
+    """
+    scored = [t for t in true_patches if float(np.linalg.norm(t.force)) >= PATCH_MIN_N]
+    scored.sort(key=lambda t: -float(np.linalg.norm(t.force)))
+    free = list(range(len(est_patches)))
+    err_a: list[float] = []
+    err_p: list[float] = []
+    pairs: list[tuple[Any, Any]] = []
+    for t in scored:
+        c = np.asarray(t.centroid, dtype=np.float64)
+        if not free:
+            err_a.append(float("nan"))
+            err_p.append(float("nan"))
+            continue
+        d = [float(np.linalg.norm(np.asarray(est_patches[k].centroid) - c)) for k in free]
+        k = free.pop(int(np.argmin(d)))
+        e = est_patches[k]
+        pc = np.asarray(getattr(e, "pressure_centroid", e.centroid), dtype=np.float64)
+        pc = pc if pc.size == 3 else np.asarray(e.centroid, dtype=np.float64)
+        err_a.append(1e3 * min(d))
+        err_p.append(1e3 * float(np.linalg.norm(pc - c)))
+        pairs.append((e, t))
+    two = len(scored) == 2 and len(est_patches) == 2 and len(pairs) == 2
+
+    def close(e: Any, t: Any, magnitude: bool) -> bool:
+        fe, ft = np.asarray(e.force, dtype=np.float64), np.asarray(t.force, dtype=np.float64)
+        n = float(np.linalg.norm(ft))
+        err = abs(float(np.linalg.norm(fe)) - n) if magnitude else float(np.linalg.norm(fe - ft))
+        return err <= PATCH_FORCE_TOL * n
+
+    found = two and all(close(e, t, False) for e, t in pairs)
+    found_mag = two and all(close(e, t, True) for e, t in pairs)
+    return PatchScore(err_a, err_p, len(scored) == 2, bool(found), bool(found_mag))
+
+
+def relative_error(est: Sequence[float] | NDArray, truth: Sequence[float] | NDArray) -> float:
+    """``|est - truth| / |truth|`` (NaN when the truth is zero or either is missing)."""
+    e = np.asarray(est, dtype=np.float64)
+    g = np.asarray(truth, dtype=np.float64)
+    if e.size != 3 or g.size != 3:
+        return float("nan")
+    n = float(np.linalg.norm(g))
+    return float(np.linalg.norm(e - g) / n) if n > 0 else float("nan")
+
+
+def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
+    """Torque, centroid and two-contact statistics over converged frames of at least
+    :data:`WRENCH_MIN_N` (module docstring); NaN where a class has no frame."""
+    recs = [r for r in records if r.truth_converged and true_force(r) >= WRENCH_MIN_N]
+    tau = [relative_error(r.tau_est, r.tau_gt) for r in recs]
+    tau = [x for x in tau if not math.isnan(x)]
+    tau_ref = [relative_error(r.tau_est, r.tau_gt_reference) for r in recs]
+    lever = [
+        1e3 * float(np.linalg.norm(np.subtract(r.tau_est, r.tau_gt))) / true_force(r)
+        for r in recs
+        if len(r.tau_est) == 3 and len(r.tau_gt) == 3
+    ]
+    ca = [x for r in recs for x in r.centroid_err_mm]
+    cp = [x for r in recs for x in r.pressure_centroid_err_mm]
+    two = [r for r in recs if r.two_contact]
+
+    def med(v: list[float]) -> float:
+        v = [x for x in v if not math.isnan(x)]
+        return float(np.median(v)) if v else float("nan")
+
+    def within(v: list[float]) -> float:
+        # a missed patch (NaN) counts as not within
+        return sum(1 for x in v if x <= CENTROID_TOL_MM) / len(v) if v else float("nan")
+
+    return {
+        "torque_rel_err": med(tau),
+        "torque_rel_err_reference": med(tau_ref),
+        "torque_lever_err_mm": med(lever),
+        "centroid_err_mm": med(ca),
+        "pressure_centroid_err_mm": med(cp),
+        "centroid_within_tol": within(ca),
+        "pressure_centroid_within_tol": within(cp),
+        "two_contact_rate": (sum(r.two_found for r in two) / len(two) if two else float("nan")),
+        "two_contact_magnitude_rate": (
+            sum(r.two_found_magnitude for r in two) / len(two) if two else float("nan")
+        ),
+        "n_wrench": float(len(recs)),
+        "n_torque": float(len(tau)),
+        "n_patches_scored": float(len(ca)),
+        "n_patches_missed": float(sum(math.isnan(x) for x in ca)),
+        "n_two_contact": float(len(two)),
+    }
+
+
+WRENCH_KEYS = (
+    "torque_rel_err",
+    "torque_rel_err_reference",
+    "torque_lever_err_mm",
+    "centroid_err_mm",
+    "pressure_centroid_err_mm",
+    "centroid_within_tol",
+    "pressure_centroid_within_tol",
+    "two_contact_rate",
+    "two_contact_magnitude_rate",
+    "n_wrench",
+    "n_torque",
+    "n_patches_scored",
+    "n_patches_missed",
+    "n_two_contact",
+)
 
 
 def frame_metrics(
@@ -194,6 +359,16 @@ def thresholds() -> dict[str, Any]:
     return {"untouched_below_n": UNTOUCHED_N, "light_touch_n": list(LIGHT_TOUCH_RANGE_N)}
 
 
+def wrench_thresholds() -> dict[str, float]:
+    """The bounds the wrench and patch scores use, as reported in JSON."""
+    return {
+        "wrench_min_n": WRENCH_MIN_N,
+        "patch_min_n": PATCH_MIN_N,
+        "centroid_tol_mm": CENTROID_TOL_MM,
+        "patch_force_tol": PATCH_FORCE_TOL,
+    }
+
+
 def aggregate(records: Sequence[FrameMetrics]) -> dict[str, float]:
     """Summary statistics of a group of frame records (see the module docstring)."""
     recs = [r for r in records if r.truth_converged]
@@ -220,6 +395,7 @@ def aggregate(records: Sequence[FrameMetrics]) -> dict[str, float]:
         "n_light": float(len(light)),
         "n_untouched": float(len(untouched)),
         "n_excluded": float(n_excluded),
+        **wrench_stats(records),
     }
 
 
@@ -282,5 +458,12 @@ def summarize(records: Sequence[FrameMetrics]) -> dict[str, Any]:
         # Rates over a class of frames are pooled: the share of all such frames.
         for key, n in _POOLED.items():
             stats[key] = _pooled(per, key, n)
+        # Medians and shares of the wrench scores: over all frames of every indenter.
+        stats.update(wrench_stats([r for r in records if r.estimator == e]))
         average[e] = stats
-    return {"geometries": geoms, "average": average, "thresholds": thresholds()}
+    return {
+        "geometries": geoms,
+        "average": average,
+        "thresholds": thresholds(),
+        "wrench_thresholds": wrench_thresholds(),
+    }

@@ -394,65 +394,19 @@ def identify(
     at = (real.centre_m[0], real.centre_m[1])
     press_depth = real.depth_m * 1.35
     if radius_m is None:
-
-        def area_of(log_r: float) -> float:
-            r = float(np.exp(log_r))
-            s = at_dent(sim_press(press_scene(phys, at, r, press_depth)), real.depth_m)
-            log(
-                f"  sphere {r * 1e3:.2f} mm: area {s.area_m2 * 1e4:.2f} cm2, volume "
-                f"{s.volume_m3 * 1e6:.2f} cm3 at the real depth"
-            )
-            return float(np.log(s.area_m2))
-
-        r_fit = _secant(area_of, np.log(0.008), np.log(0.012), np.log(real.area_m2), tol=0.01)
-        radius_m = round(float(np.exp(r_fit)), 4)
+        radius_m = _matched_radius(phys, at, press_depth, real, log)
     rad = float(radius_m)
-    runs: dict[float, tuple[Any, list[DentReading]]] = {}
-
-    def trial(value: float) -> Any:
-        if fit == "gauge":
-            g = round(value, 1)
-            e = round(sim.youngs_modulus_pa * g / sim.gauge_pressure_pa, -3)
-            p = replace(
-                phys, gauge_pressure_pa=g, atmospheric_pa=round(p_rest - g, 1), youngs_modulus_pa=e
-            )
-        else:
-            p = replace(phys, youngs_modulus_pa=round(value, -3))
-
-        def apex_of(h: float) -> float:
-            return inflated_apex(replace(p, rest_dome_height_m=h))
-
-        h = _secant(apex_of, 0.8 * apex, 0.9 * apex, apex, tol=2e-5)
-        return replace(p, rest_dome_height_m=round(h, 6))
-
-    def force_of(log_x: float) -> float:
-        p = trial(float(np.exp(log_x)))
-        rd = sim_press(press_scene(p, at, rad, press_depth))
-        runs[log_x] = (p, rd)
-        s = at_dent(rd, real.depth_m)
-        log(
-            f"  gauge {p.gauge_pressure_pa:.0f} Pa, E {p.youngs_modulus_pa / 1e6:.3f} MPa, rest "
-            f"dome {p.rest_dome_height_m * 1e3:.2f} mm, Vc {p.chamber_volume_m3 * 1e6:.0f} cm3: "
-            f"|f| {s.force_n:.2f} N, dp {s.dp_pa:.0f} Pa, area {s.area_m2 * 1e4:.2f} cm2, "
-            f"volume {s.volume_m3 * 1e6:.2f} cm3"
-        )
-        return float(np.log(s.force_n))
-
+    dent = _DentTarget(at, rad, press_depth, real, p_rest, apex)
     x0 = float(np.log(phys.gauge_pressure_pa if fit == "gauge" else phys.youngs_modulus_pa))
-    target = float(np.log(real.force_n))
     for _ in range(2):
-        runs.clear()
-        x0 = _secant(force_of, x0, x0 + 0.5, target, tol=0.01)
-        p, rd = runs[x0]
+        x0, p, rd = _fit_force(fit, phys, dent, x0, 0.5, log)
         s = at_dent(rd, real.depth_m)
         v_eff = p_rest * s.volume_m3 / s.dp_pa
         v_target = p_rest * real.volume_m3 / real.dp_pa
         vc = max(p.chamber_volume_m3 + (v_target - v_eff), 1e-6)
         log(f"  chamber volume {p.chamber_volume_m3 * 1e6:.0f} -> {vc * 1e6:.0f} cm3")
         phys = replace(phys, chamber_volume_m3=round(vc, 7))
-    runs.clear()
-    x0 = _secant(force_of, x0, x0 + 0.05, target, tol=0.01)
-    p, rd = runs[x0]
+    x0, p, rd = _fit_force(fit, phys, dent, x0, 0.05, log)
     return Identified(
         real=real,
         real_apex_m=apex,
@@ -462,6 +416,88 @@ def identify(
         physics=p,
         radius_m=rad,
     )
+
+
+@dataclass(frozen=True)
+class _DentTarget:
+    """What a trial press must reproduce: the real dent (centre, depth, force) pressed by a
+    sphere of ``radius_m`` to ``press_depth_m``, on a bubble at the real rest pressure/apex."""
+
+    at: tuple[float, float]
+    radius_m: float
+    press_depth_m: float
+    real: PressSummary
+    p_rest: float
+    apex: float
+
+
+def _fit_force(
+    fit: str, phys: Any, dent: _DentTarget, x0: float, step: float, log: Any
+) -> tuple[float, Any, list[DentReading]]:
+    """Secant on log force over the log trial value (from ``x0``, first step ``step``) until
+    the simulated press gives the real force at the real dent depth; returns the log value,
+    its physics and its dent readings."""
+    runs: dict[float, tuple[Any, list[DentReading]]] = {}
+
+    def force_of(log_x: float) -> float:
+        p = _trial_physics(fit, phys, float(np.exp(log_x)), dent.p_rest, dent.apex)
+        rd = sim_press(press_scene(p, dent.at, dent.radius_m, dent.press_depth_m))
+        runs[log_x] = (p, rd)
+        s = at_dent(rd, dent.real.depth_m)
+        log(
+            f"  gauge {p.gauge_pressure_pa:.0f} Pa, E {p.youngs_modulus_pa / 1e6:.3f} MPa, rest "
+            f"dome {p.rest_dome_height_m * 1e3:.2f} mm, Vc {p.chamber_volume_m3 * 1e6:.0f} cm3: "
+            f"|f| {s.force_n:.2f} N, dp {s.dp_pa:.0f} Pa, area {s.area_m2 * 1e4:.2f} cm2, "
+            f"volume {s.volume_m3 * 1e6:.2f} cm3"
+        )
+        return float(np.log(s.force_n))
+
+    x = _secant(force_of, x0, x0 + step, float(np.log(dent.real.force_n)), tol=0.01)
+    p, rd = runs[x]
+    return x, p, rd
+
+
+def _matched_radius(
+    phys: Any, at: tuple[float, float], press_depth: float, real: PressSummary, log: Any
+) -> float:
+    """The sphere radius (m, rounded to 0.1 mm) whose dent on ``phys`` covers the real dent's
+    area (deeper than 2 mm) at the real depth: secant on log radius."""
+
+    def area_of(log_r: float) -> float:
+        r = float(np.exp(log_r))
+        s = at_dent(sim_press(press_scene(phys, at, r, press_depth)), real.depth_m)
+        log(
+            f"  sphere {r * 1e3:.2f} mm: area {s.area_m2 * 1e4:.2f} cm2, volume "
+            f"{s.volume_m3 * 1e6:.2f} cm3 at the real depth"
+        )
+        return float(np.log(s.area_m2))
+
+    r_fit = _secant(area_of, np.log(0.008), np.log(0.012), np.log(real.area_m2), tol=0.01)
+    return round(float(np.exp(r_fit)), 4)
+
+
+def _trial_physics(fit: str, phys: Any, value: float, p_rest: float, apex: float) -> Any:
+    """``phys`` with the trial value (gauge pressure with E in proportion, or E alone) and the
+    stress-free dome whose inflation gives the real rest apex (secant on ``inflated_apex``)."""
+    from dataclasses import replace
+
+    from bubble_rt.sensor import PROFILES
+
+    if fit == "gauge":
+        sim = PROFILES["sim"].bubble
+        g = round(value, 1)
+        e = round(sim.youngs_modulus_pa * g / sim.gauge_pressure_pa, -3)
+        p = replace(
+            phys, gauge_pressure_pa=g, atmospheric_pa=round(p_rest - g, 1), youngs_modulus_pa=e
+        )
+    else:
+        p = replace(phys, youngs_modulus_pa=round(value, -3))
+
+    def apex_of(h: float) -> float:
+        return inflated_apex(replace(p, rest_dome_height_m=h))
+
+    h = _secant(apex_of, 0.8 * apex, 0.9 * apex, apex, tol=2e-5)
+    return replace(p, rest_dome_height_m=round(h, 6))
 
 
 def estimator_on_press(

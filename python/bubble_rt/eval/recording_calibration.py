@@ -1,6 +1,6 @@
 """Calibration of E, k_f, k_u on recordings that carry a force/torque wrench.
 
-The loss is the paper's (method.md section 4, :mod:`bubble_rt.eval.calibration`) with the
+The loss is the paper's (:mod:`bubble_rt.eval.calibration`) with the
 recorded wrench standing in for the simulator's net force::
 
     L = sum_i lambda1 * ||f_net_i - R (w_i - b)||_2  +  lambda2 * sum_{i with contact truth}

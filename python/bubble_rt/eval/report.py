@@ -10,7 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from bubble_rt.eval.metrics import LIGHT_TOUCH_RANGE_N, UNTOUCHED_N, FrameMetrics, contact_iou
+from bubble_rt.eval.metrics import (
+    LIGHT_TOUCH_RANGE_N,
+    UNTOUCHED_N,
+    FrameMetrics,
+    contact_iou,
+    wrench_thresholds,
+)
 from bubble_rt.eval.tasks import TrajectoryResult
 
 
@@ -55,6 +61,55 @@ def markdown_table(summary: dict[str, Any]) -> str:
         f"\nlight: frames with true |f| in [{lo:g}, {hi:g}] N (the light-touch detection rate is "
         f"over them); untouched: true |f| < {UNTOUCHED_N:g} N (the false-contact rate is over "
         "them); average row: rates over those frames of every indenter"
+    )
+    lines.append("\n" + wrench_table(summary))
+    return "\n".join(lines)
+
+
+def wrench_table(summary: dict[str, Any]) -> str:
+    """The wrench and patch scores (bubble_rt.eval.metrics' docstring): one row per geometry
+    (and all frames), columns per estimator."""
+    ests: list[str] = list(summary["average"].keys())
+    th = summary.get("wrench_thresholds") or wrench_thresholds()
+    tol = th["centroid_tol_mm"]
+    cols = [
+        ("torque err (median)", "torque_rel_err", 2),
+        ("torque err vs untouched positions", "torque_rel_err_reference", 2),
+        ("torque err / abs(f_gt) (mm)", "torque_lever_err_mm", 2),
+        ("centroid err (mm)", "centroid_err_mm", 2),
+        ("pressure centroid err (mm)", "pressure_centroid_err_mm", 2),
+        (f"pressure centroid <= {tol:g} mm", "pressure_centroid_within_tol", 2),
+        ("two contacts found", "two_contact_rate", 2),
+        ("two contacts found (magnitudes)", "two_contact_magnitude_rate", 2),
+    ]
+    header = ["geometry"] + [f"{e} {c[0]}" for e in ests for c in cols]
+    header += ["frames", "patches (missed)", "two-contact frames"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    rows = list(summary["geometries"].items()) + [("all", summary["average"])]
+    for name, per in rows:
+        cells = [name]
+        counts = ("-", "-", "-")
+        for e in ests:
+            st = per.get(e)
+            for _, key, d in cols:
+                cells.append(_fmt(st.get(key, float("nan")), d) if st else "-")
+            if st and e == ests[0] and "n_wrench" in st:
+                counts = (
+                    str(int(st["n_wrench"])),
+                    f"{int(st['n_patches_scored'])} ({int(st['n_patches_missed'])})",
+                    str(int(st["n_two_contact"])),
+                )
+        cells += list(counts)
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append(
+        f"\nwrench scores over frames with true |f| >= {th['wrench_min_n']:g} N: torque err = "
+        "|tau - tau_gt| / |tau_gt| about the mesh origin; centroid errors from each true patch "
+        f"of >= {th['patch_min_n']:g} N (force-weighted centroid) to its matched estimated "
+        "patch (area-weighted `centroid`, normal-force-weighted `pressure_centroid`); two "
+        "contacts found: exactly two estimated patches, each force within "
+        f"{100 * th['patch_force_tol']:g} % (as vectors, or as magnitudes); torque err vs "
+        "untouched positions: against the truth's forces at the nodes' untouched positions, "
+        f"the published definition (counts: {ests[0]})"
     )
     return "\n".join(lines)
 

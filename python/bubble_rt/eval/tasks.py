@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +15,7 @@ from bubble_rt.eval.metrics import (
     ESTIMATORS,
     FrameMetrics,
     frame_metrics,
+    patch_scores,
     summarize,
 )
 
@@ -262,6 +263,10 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
     interior = np.ones(mesh.n_nodes, bool)
     interior[mesh.boundary] = False
     gt_masks = [np.asarray(f.truth.contact_mask(mesh), dtype=bool) for f in traj.frames]
+    from bubble_rt.wrench import PatchFinder
+
+    finder = PatchFinder(mesh)  # the patches and torque the daemon would publish
+    true_patches = [f.truth.patches() for f in traj.frames]
     config = estimator_config(task.config)
     records: list[FrameMetrics] = []
     fields: dict[str, Any] = {
@@ -276,7 +281,12 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
             e = est.process(frame)
             ms = 1e3 * (time.perf_counter() - ts)
             f_gt = np.asarray(frame.truth.net_force, dtype=float)
-            records.append(
+            forces = np.asarray(e.node_forces, dtype=float)
+            patches = finder.patches(
+                e.contact, forces, e.displacements, e.normal_pressure, e.support
+            )
+            ps = patch_scores(patches, true_patches[i])
+            rec = replace(
                 frame_metrics(
                     geometry=task.geometry,
                     estimator=name,
@@ -291,8 +301,18 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
                     interior=interior,
                     time_ms=ms,
                     truth_converged=bool(getattr(frame.truth, "converged", True)),
-                )
+                ),
+                tau_est=[float(x) for x in finder.net_torque(forces)],
+                tau_gt=[float(x) for x in frame.truth.net_torque()],
+                tau_gt_reference=[float(x) for x in frame.truth.net_torque(at_reference=True)],
+                centroid_err_mm=ps.centroid_err_mm,
+                pressure_centroid_err_mm=ps.pressure_centroid_err_mm,
+                two_contact=ps.two_contact,
+                two_found=ps.two_found,
+                two_found_magnitude=ps.two_found_magnitude,
+                est_patches=len(patches),
             )
+            records.append(rec)
             if i in task.keep_fields:
                 fields.setdefault("frames", {}).setdefault(i, {})[name] = {
                     "node_forces": np.asarray(e.node_forces, dtype=float),

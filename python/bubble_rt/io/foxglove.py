@@ -12,7 +12,9 @@ topic                           schema (encoding)           content
                                                             measured shape, vertices coloured by
                                                             normal contact pressure; ``forces``:
                                                             node force arrows; ``contact``:
-                                                            contact nodes and patch labels
+                                                            contact nodes, patch labels and
+                                                            outlines; ``wrench``: net force
+                                                            and torque arrows
 /bubble_rt/foxglove/net_force   bubble_rt.NetForce (json)   estimated net force x, y, z,
                                                             magnitude (N, sensor frame)
 /bubble_rt/foxglove/true_force  bubble_rt.NetForce (json)   the simulator's true net force (sim
@@ -32,7 +34,13 @@ towards +z). Scene conventions:
   acting on the membrane: the tip at the node, the arrow along the force, its length
   ``arrow_scale`` x |f| (default 0.05 m per N, i.e. 5 mm per 0.1 N).
 * contact: every contact node as a yellow 2 mm sphere; each contact patch (connected contact
-  nodes) a text at its centroid, ``patch k: |F| N``.
+  nodes) a text at its centroid, ``patch k: |F| N``, and its outline (yellow lines: the edges
+  between patch nodes that fewer than two of the patch's triangles share).
+* wrench (frames with a net torque): the net force as a blue arrow on its line of action (the
+  wrench's central axis, ``F x tau / |F|^2 + s F``), its tip at the axis point nearest the
+  strongest patch's centroid (else nearest the origin), ``arrow_scale`` long per newton; the
+  net torque about the origin as a purple arrow from the origin, ``torque_scale`` (default
+  1 m per N m, i.e. 10 mm per 0.01 N m).
 
 ``layouts/bubble_rt.foxglove.json`` in the repository is a Foxglove layout (3D, image, plots,
 status) for these topics.
@@ -58,6 +66,7 @@ TOPIC_STATUS = "/bubble_rt/foxglove/status"
 DEFAULT_ADDRESS = "ws://127.0.0.1:8765"
 
 ARROW_SCALE_M_PER_N = 0.05
+TORQUE_SCALE_M_PER_NM = 1.0
 MIN_ARROW_N = 0.01
 PRESSURE_MAX_PA = 5000.0
 
@@ -167,8 +176,12 @@ def scene_update(
     arrow_scale: float = ARROW_SCALE_M_PER_N,
     min_arrow_n: float = MIN_ARROW_N,
     pressure_max_pa: float = PRESSURE_MAX_PA,
+    net_force: NDArray | None = None,
+    net_torque: NDArray | None = None,
+    torque_scale: float = TORQUE_SCALE_M_PER_NM,
 ) -> Any:
-    """The foxglove.SceneUpdate for one force frame (see the module docstring)."""
+    """The foxglove.SceneUpdate for one force frame (see the module docstring); the wrench
+    entity only when ``net_force`` and ``net_torque`` (3,) are given."""
     import foxglove.messages as fm
 
     V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -193,25 +206,28 @@ def scene_update(
     if boundary is not None:
         mags[np.asarray(boundary, dtype=np.int64)] = 0.0  # the rim's support, not contact
     red = fm.Color(r=0.9, g=0.15, b=0.1, a=1.0)
-    for i in np.flatnonzero(mags > min_arrow_n):
-        d = F[i] / mags[i]
-        length = float(mags[i] * arrow_scale)
-        tail = V[i] - d * length
+
+    def arrow(tip: NDArray, vec: NDArray, scale: float, color: Any, width: float) -> Any:
+        mag = float(np.linalg.norm(vec))
+        d = vec / mag
+        length = mag * scale
+        tail = tip - d * length
         qx, qy, qz, qw = _quat_x_to(d)
-        head = min(0.3 * length, 0.004)
-        arrows.append(
-            fm.ArrowPrimitive(
-                pose=fm.Pose(
-                    position=fm.Vector3(x=float(tail[0]), y=float(tail[1]), z=float(tail[2])),
-                    orientation=fm.Quaternion(x=qx, y=qy, z=qz, w=qw),
-                ),
-                shaft_length=max(length - head, 0.0),
-                shaft_diameter=0.0008,
-                head_length=head,
-                head_diameter=0.002,
-                color=red,
-            )
+        head = min(0.3 * length, 2 * width + 0.002)
+        return fm.ArrowPrimitive(
+            pose=fm.Pose(
+                position=fm.Vector3(x=float(tail[0]), y=float(tail[1]), z=float(tail[2])),
+                orientation=fm.Quaternion(x=qx, y=qy, z=qz, w=qw),
+            ),
+            shaft_length=max(length - head, 0.0),
+            shaft_diameter=width,
+            head_length=head,
+            head_diameter=2.5 * width,
+            color=color,
         )
+
+    for i in np.flatnonzero(mags > min_arrow_n):
+        arrows.append(arrow(V[i], F[i], arrow_scale, red, 0.0008))
     forces = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="forces", arrows=arrows)
     yellow = fm.Color(r=1.0, g=0.9, b=0.1, a=1.0)
     spheres = [
@@ -241,10 +257,69 @@ def scene_update(
                 text=f"patch {k}: {float(np.linalg.norm(p.force)):.2f} N",
             )
         )
+    T = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    lines = []
+    for p in patches or []:
+        seg = patch_outline(T, np.asarray(p.nodes, dtype=np.int64))
+        if len(seg):
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineList,
+                    pose=ident,
+                    thickness=2.0,
+                    scale_invariant=True,
+                    points=[
+                        fm.Point3(x=float(V[i, 0]), y=float(V[i, 1]), z=float(V[i, 2]))
+                        for i in seg.ravel()
+                    ],
+                    color=yellow,
+                )
+            )
     patches_e = fm.SceneEntity(
-        timestamp=stamp, frame_id=FRAME_ID, id="contact", spheres=spheres, texts=texts
+        timestamp=stamp, frame_id=FRAME_ID, id="contact", spheres=spheres, texts=texts, lines=lines
     )
-    return fm.SceneUpdate(entities=[membrane, forces, patches_e])
+    entities = [membrane, forces, patches_e]
+    if net_force is not None and net_torque is not None:
+        f = np.asarray(net_force, dtype=np.float64).reshape(3)
+        tau = np.asarray(net_torque, dtype=np.float64).reshape(3)
+        wrench_arrows = []
+        f2 = float(f @ f)
+        if f2 > min_arrow_n**2 and np.isfinite(f2):
+            axis0 = np.cross(f, tau) / f2  # the central axis' point nearest the origin
+            d = f / np.sqrt(f2)
+            c = np.asarray(patches[0].centroid, dtype=np.float64) if patches else axis0
+            tip = axis0 + ((c - axis0) @ d) * d
+            blue = fm.Color(r=0.1, g=0.4, b=1.0, a=1.0)
+            wrench_arrows.append(arrow(tip, f, arrow_scale, blue, 0.0015))
+        t_mag = float(np.linalg.norm(tau))
+        if t_mag * torque_scale > 1e-4 and np.isfinite(t_mag):
+            purple = fm.Color(r=0.6, g=0.2, b=0.9, a=1.0)
+            wrench_arrows.append(arrow(tau * torque_scale, tau, torque_scale, purple, 0.0015))
+        entities.append(
+            fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="wrench", arrows=wrench_arrows)
+        )
+    return fm.SceneUpdate(entities=entities)
+
+
+def patch_outline(triangles: NDArray, nodes: NDArray) -> NDArray[np.int64]:
+    """E x 2 node pairs outlining a patch: the mesh edges between two patch nodes that fewer
+    than two triangles lying wholly in the patch share (its border, and the edges of a patch
+    too thin to hold a triangle)."""
+    T = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    inside = np.zeros(int(T.max()) + 1 if T.size else 0, bool)
+    nodes = np.asarray(nodes, dtype=np.int64)
+    inside[nodes[nodes < len(inside)]] = True
+    if not inside.any():
+        return np.zeros((0, 2), np.int64)
+    e = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
+    full = np.tile(inside[T].all(axis=1), 3)
+    keep = inside[e].all(axis=1)
+    e, full = np.sort(e[keep], axis=1), full[keep]
+    if not len(e):
+        return np.zeros((0, 2), np.int64)
+    edges, inv = np.unique(e, axis=0, return_inverse=True)
+    shared = np.bincount(inv.ravel(), weights=full.astype(float), minlength=len(edges))
+    return np.asarray(edges[shared < 2], dtype=np.int64)
 
 
 def net_force_payload(f: NDArray, t_ns: int, frame_index: int = 0) -> dict[str, Any]:
@@ -326,6 +401,8 @@ class SceneBuilder:
             t_ns=t_ns,
             arrow_scale=self.arrow_scale,
             pressure_max_pa=self.pressure_max_pa,
+            net_force=d.net_force if d.net_torque is not None else None,
+            net_torque=d.net_torque,
         )
         out = [
             _proto(TOPIC_SCENE, scene, t_ns),

@@ -67,17 +67,13 @@ STATE_NAMES = {
 }
 STATE_VALUES = {v: k for k, v in STATE_NAMES.items()}
 
-#: Request names accepted on the control socket (the ControlRequest oneof fields).
-REQUESTS = (
-    "get_mesh",
-    "get_config",
-    "set_params",
-    "tare",
-    "record_start",
-    "record_stop",
-    "get_status",
+#: Request names accepted on the control socket: the ControlRequest oneof's fields.
+REQUESTS: tuple[str, ...] = tuple(
+    f.name for f in pb.ControlRequest.DESCRIPTOR.oneofs_by_name["request"].fields
 )
-PARAM_NAMES = ("k_f", "k_u", "youngs_modulus", "k_const", "k_linear")
+#: Parameters ``set_params`` carries: the Params message's fields (the estimator's live
+#: parameters, declared in bubble_rt.estimation.params; a test keeps them equal).
+PARAM_NAMES: tuple[str, ...] = tuple(f.name for f in pb.Params.DESCRIPTOR.fields)
 
 
 class ProtocolError(ValueError):
@@ -159,14 +155,25 @@ def decode_mesh(msg: Any) -> MeshData:
 
 
 # ---------------------------------------------------------------------------------- force frame
+def _empty() -> NDArray[np.float64]:
+    return np.zeros(0)
+
+
 @dataclass(frozen=True)
 class Patch:
-    """One contact patch: centroid (3,) m, area m^2, force (3,) N, node indices."""
+    """One contact patch (ContactPatch): area-weighted centroid (3,) m, area m^2, force (3,) N,
+    node indices; unit outward normal (3,), peak normal pressure Pa, torque about the centroid
+    (3,) N m and normal-force-weighted centroid (3,) m. A frame from before these existed
+    decodes them as empty arrays and 0 Pa."""
 
     centroid: NDArray[np.float64]
     area: float
     force: NDArray[np.float64]
     nodes: NDArray[np.int64]
+    normal: NDArray[np.float64] = field(default_factory=_empty)
+    peak_pressure: float = 0.0
+    torque: NDArray[np.float64] = field(default_factory=_empty)
+    pressure_centroid: NDArray[np.float64] = field(default_factory=_empty)
 
 
 @dataclass(frozen=True)
@@ -197,6 +204,9 @@ class ForceFrameData:
     #: contact per mesh node (N,); None unless the frame came from the simulator.
     true_net_force: NDArray[np.float64] | None = None
     true_contact: NDArray[np.bool_] | None = None
+    #: Net torque (3,) N m about the mesh origin (ForceFrame.net_torque); None in a frame
+    #: from before the field existed.
+    net_torque: NDArray[np.float64] | None = None
 
     @property
     def has_truth(self) -> bool:
@@ -212,6 +222,9 @@ class ForceFrameData:
             "capture_time_ns": self.capture_time_ns,
             "latency_ms": round(self.latency_ms, 3),
             "net_force": [round(float(x), 5) for x in self.net_force],
+            "net_torque": (
+                None if self.net_torque is None else [round(float(x), 7) for x in self.net_torque]
+            ),
             "contact_nodes": int(self.contact.sum()),
             "patches": [
                 {
@@ -219,6 +232,10 @@ class ForceFrameData:
                     "area": float(p.area),
                     "force": [round(float(x), 5) for x in p.force],
                     "nodes": len(p.nodes),
+                    "normal": [round(float(x), 5) for x in p.normal],
+                    "peak_pressure": round(float(p.peak_pressure), 2),
+                    "torque": [round(float(x), 7) for x in p.torque],
+                    "pressure_centroid": [round(float(x), 6) for x in p.pressure_centroid],
                 }
                 for p in self.patches
             ],
@@ -266,8 +283,10 @@ def encode_force_frame(
     solver_info: Any = None,
     valid_node_fraction: float = 1.0,
     degraded_reasons: Sequence[str] = (),
+    net_torque: NDArray | None = None,
 ) -> Any:
-    """Build a ForceFrame; publish_time_ns and latency are set by :func:`stamp_publish`."""
+    """Build a ForceFrame; publish_time_ns and latency are set by :func:`stamp_publish`.
+    ``net_torque`` (3,) N m (bubble_rt.wrench.net_torque); None leaves the field empty."""
     msg = pb.ForceFrame(
         protocol_version=PROTOCOL_VERSION,
         sensor_id=sensor_id,
@@ -284,11 +303,17 @@ def encode_force_frame(
     msg.net_force.extend(_packed(net_force))
     msg.node_forces.extend(_packed(node_forces))
     msg.normal_pressure.extend(_packed(normal_pressure))
+    if net_torque is not None:
+        msg.net_torque.extend(_packed(net_torque))
     for p in patches:
-        pm = msg.patches.add(area=float(p.area))
+        peak = float(p.peak_pressure)
+        pm = msg.patches.add(area=float(p.area), peak_pressure=peak if np.isfinite(peak) else 0.0)
         pm.centroid.extend(_packed(p.centroid))
         pm.force.extend(_packed(p.force))
         pm.nodes.extend(np.asarray(p.nodes, dtype=np.int64).tolist())
+        pm.normal.extend(_packed(p.normal))
+        pm.torque.extend(_packed(p.torque))
+        pm.pressure_centroid.extend(_packed(p.pressure_centroid))
     for k, v in (timings_ms or {}).items():
         msg.timings.add(stage=str(k), ms=float(v))
     if solver_info is not None:
@@ -332,9 +357,14 @@ def decode_force_frame(payload: bytes | Any) -> ForceFrameData:
             area=p.area,
             force=np.asarray(p.force, dtype=np.float64),
             nodes=np.asarray(p.nodes, dtype=np.int64),
+            normal=_vec3_or_empty(p.normal, "ContactPatch.normal"),
+            peak_pressure=p.peak_pressure,
+            torque=_vec3_or_empty(p.torque, "ContactPatch.torque"),
+            pressure_centroid=_vec3_or_empty(p.pressure_centroid, "ContactPatch.pressure_centroid"),
         )
         for p in msg.patches
     ]
+    torque = _vec3_or_empty(msg.net_torque, "ForceFrame.net_torque")
     return ForceFrameData(
         sensor_id=msg.sensor_id,
         seq=msg.seq,
@@ -356,8 +386,17 @@ def decode_force_frame(payload: bytes | Any) -> ForceFrameData:
         valid_node_fraction=msg.valid_node_fraction,
         degraded=msg.degraded,
         degraded_reasons=list(msg.degraded_reasons),
+        net_torque=torque if torque.size else None,
         **_decode_sim_truth(msg),
     )
+
+
+def _vec3_or_empty(values: Any, name: str) -> NDArray[np.float64]:
+    """A 3-vector field: 3 values, or none (a message from before the field existed)."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size not in (0, 3):
+        raise ProtocolError(f"{name} must hold 3 values, got {v.size}")
+    return v
 
 
 def _decode_sim_truth(msg: Any) -> dict[str, Any]:

@@ -39,7 +39,8 @@ layout (the kit's sensor is the Punyo); ``pose=`` overrides.
 
 Writing (:class:`BagWriter`, ``bubble-rt estimate RECORDING --bag OUT``): a rosbag2 (MCAP)
 with, per estimated frame, on ``/bubble_rt/wrench`` a geometry_msgs/WrenchStamped (net force
-on the membrane, N, in the sensor (mesh) frame ``bubble_rt_sensor``; torque 0) and on
+on the membrane, N, in the sensor (mesh) frame ``bubble_rt_sensor``; torque about that
+frame's origin, N m, as ForceFrame.net_torque: ``bubble_rt.wrench.net_torque``) and on
 ``/bubble_rt/nodes`` a sensor_msgs/PointCloud2 of the mesh nodes (frame ``bubble_rt_sensor``,
 one point per node, all fields FLOAT32): x, y, z (node position, m, rest position plus the
 measured displacement), fx, fy, fz (node contact force, N), pressure (normal contact pressure,
@@ -686,17 +687,20 @@ class BagWriter:
         node_forces: NDArray,
         normal_pressure: NDArray,
         contact: NDArray,
+        net_torque: NDArray | None = None,
     ) -> None:
+        """One frame: ``net_torque`` (3,) N m about the sensor frame's origin (None: 0)."""
         ts = self._bag.ts
         ns = int(round(t * 1e9))
         header = _header(ts, t, self.frame_id)
         V3 = ts.types["geometry_msgs/msg/Vector3"]
         f = np.asarray(net_force, dtype=np.float64).reshape(3)
+        tau = np.zeros(3) if net_torque is None else np.asarray(net_torque, np.float64).reshape(3)
         wrench = ts.types[WRENCH](
             header=header,
             wrench=ts.types["geometry_msgs/msg/Wrench"](
                 force=V3(x=float(f[0]), y=float(f[1]), z=float(f[2])),
-                torque=V3(x=0.0, y=0.0, z=0.0),
+                torque=V3(x=float(tau[0]), y=float(tau[1]), z=float(tau[2])),
             ),
         )
         self._bag.write(TOPIC_WRENCH, WRENCH, wrench, ns)

@@ -1,15 +1,16 @@
-"""Paper-faithful membrane model (method.md section 2) in plain NumPy/SciPy: CST stiffness, lumped areas, normals, forces, contact rule."""
+"""Paper-faithful membrane model (the paper's linear model, without inflation) in plain
+NumPy/SciPy: CST stiffness, lumped areas, normals, forces, contact rule.
+
+Lumped areas and normals are also computed by the product (``bubble_rt.mesh`` and the C++
+membrane model). This copy is kept on purpose: the reference is the yardstick the C++ path is
+tested against, so it shares no code with it (import-linter forbids ``bubble_rt.estimation``
+here)."""
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-
-if TYPE_CHECKING:
-    pass
 
 
 # --------------------------------------------------------------------------- membrane model
@@ -50,7 +51,7 @@ def _triangle_frames(
 def stiffness_matrix(
     vertices: ArrayLike, triangles: ArrayLike, E: float, nu: float, thickness: float
 ) -> sp.csr_matrix:
-    """Assembled CST plane-stress stiffness K (3N x 3N, N/m, csr), method.md section 2.
+    """Assembled CST plane-stress stiffness K (3N x 3N, N/m, csr), the paper's linear model.
 
     Each triangle gets an orthonormal in-plane frame (i_hat along its first edge, j_hat =
     k_hat x i_hat); ``K_e(2D) = t A B^T D B`` and ``K_e(3D) = R^T K_e(2D) R`` with
@@ -130,7 +131,8 @@ def contact_mask(
     k_const: float = 2000.0,
     k_linear: float = 2.0,
 ) -> NDArray[np.bool_]:
-    """Contact nodes: ``p_v > max(k_const, k_linear * (a . p) / sum(a))`` (method.md sec. 2)."""
+    """Contact nodes: ``p_v > max(k_const, k_linear * (a . p) / sum(a))`` (docs/method.md,
+    "Contact rule")."""
     p = np.asarray(normal_pressure, dtype=np.float64)
     a = np.asarray(areas, dtype=np.float64)
     thresh = max(k_const, k_linear * float(a @ p) / float(a.sum()))

@@ -49,12 +49,20 @@ class ReferencePipeline:
     """The paper's full per-frame pipeline: Farneback flow, griddata lifting, CVXPY solve.
 
     Args:
-        vertices, triangles, boundary: the reference mesh (mesh frame, metres).
+        vertices: N x 3 reference mesh nodes (mesh frame, metres).
+        triangles: M x 3 node indices of the reference mesh's triangles.
+        boundary: indices of the clamped rim nodes.
         camera: ``bubble_rt.camera.Camera`` (pose camera -> mesh).
         reference_rgb: H x W x 3 uint8 RGB of the untouched membrane.
         reference_depth: H x W float32 camera-z depth (m), 0 invalid.
         reference_pressure_pa: pressure of the reference (Pa).
-        E, nu, thickness, k_f, k_u, k_const, k_linear: model and contact constants.
+        E: Young's modulus (Pa).
+        nu: Poisson ratio.
+        thickness: membrane thickness (m).
+        k_f: force sparsity weight (1/N).
+        k_u: displacement fit weight (1/m^2).
+        k_const: contact threshold, constant term (Pa).
+        k_linear: contact threshold, factor on the area-weighted mean pressure.
     """
 
     def __init__(

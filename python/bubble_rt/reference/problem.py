@@ -1,4 +1,4 @@
-"""The paper's group-lasso problem (method.md section 3) built once in CVXPY and solved with Clarabel."""
+"""The paper's group-lasso problem built once in CVXPY and solved with Clarabel."""
 
 from __future__ import annotations
 

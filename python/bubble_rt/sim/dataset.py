@@ -57,7 +57,7 @@ class DatasetSettings:
         near_gap: (min, max) gap of the near waypoint.
         depths: per indenter, ((min, max) light, (min, max) heavy) final depth past first
             touch (m). Defaults from a straight-press sweep of the physics at the dome top
-            (1,200 nodes; see the README): about 1 N and 10 N+ (the point pin reaches ~6 N at
+            (1,200 nodes; docs/simulator.md): about 1 N and 10 N+ (the point pin reaches ~6 N at
             22 mm, the deepest press the 30 mm dome allows).
         heavy_fraction: share of heavy touches (alternating, so both are always present).
         effects: effects every trajectory scene names.

@@ -188,11 +188,8 @@ def depth_stats(
     depths: Sequence[NDArray], camera: Camera, jump_m: float = JUMP_M
 ) -> dict[str, object]:
     """The depth statistics of SensorStats (every field up to ``jump_at_edges``)."""
-    import cv2
-
     D = np.stack([np.asarray(d, dtype=np.float64) for d in depths])
     D = np.where(np.isfinite(D), D, 0.0)
-    n = len(D)
     nominal = membrane_region(camera).astype(np.float64)
     region = nominal > 0
     valid = D > 0
@@ -207,9 +204,26 @@ def depth_stats(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         sd = np.nanstd(dn, axis=0)
+    inv = ~valid & region
+    return {
+        "frames": len(D),
+        "region_px": int(region.sum()),
+        **_by_range(D, surf, sd, full, inv, jump, nominal, region),
+        "noise_median_mm": _rms(sd[full]) * 1e3 if full.any() else float("nan"),
+        **_hole_stats(inv, region),
+        **_jump_stats(valid, jump, dev, steady, nominal, region),
+    }
+
+
+def _by_range(
+    D: NDArray, surf: NDArray, sd: NDArray, full: NDArray, inv: NDArray, jump: NDArray,
+    nominal: NDArray, region: NDArray,
+) -> dict[str, object]:  # fmt: skip
+    """Noise, holes and jumps per range bin; the noise law sigma = c z^2 and its fitted
+    exponent; the depth quantisation step."""
+    n = len(D)
     edges = np.asarray(RANGE_EDGES_M)
     noise, holes, jumps, zc = [], [], [], []
-    inv = ~valid & region
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         m = full & (surf >= lo) & (surf < hi)
         noise.append(_rms(sd[m]) * 1e3 if m.sum() >= 200 else float("nan"))
@@ -231,8 +245,23 @@ def depth_stats(
     )
     diffs = np.abs(np.diff(D[:, full], axis=0))
     diffs = diffs[(diffs > 1e-7) & (diffs < 5e-4)]
-    step = float(np.median(diffs) * 1e3) if diffs.size else 0.0
-    # Holes: blobs per frame, persistence between consecutive frames.
+    return {
+        "range_mm": [float(e * 1e3) for e in edges],
+        "noise_mm": noise,
+        "noise_c": c,
+        "noise_exponent": expo,
+        "step_mm": float(np.median(diffs) * 1e3) if diffs.size else 0.0,
+        "hole_by_range": holes,
+        "jump_by_range": jumps,
+    }
+
+
+def _hole_stats(inv: NDArray, region: NDArray) -> dict[str, object]:
+    """Holes: the fraction of the membrane, blob sizes per frame, persistence between
+    consecutive frames (IoU)."""
+    import cv2
+
+    n = len(inv)
     areas: list[int] = []
     for k in range(n):
         _n, _lab, st, _c = cv2.connectedComponentsWithStats(inv[k].astype(np.uint8), connectivity=8)
@@ -241,7 +270,23 @@ def depth_stats(
         float((inv[k] & inv[k + 1]).sum() / max((inv[k] | inv[k + 1]).sum(), 1))
         for k in range(n - 1)
     ]
-    # Jumps: where they are.
+    return {
+        "hole_fraction": float(inv.sum() / (n * max(int(region.sum()), 1))),
+        "hole_blob_px": (
+            (float(np.median(areas)), float(np.quantile(areas, 0.9))) if areas else (0.0, 0.0)
+        ),
+        "hole_persistence": float(np.mean(iou)) if iou else float("nan"),
+    }
+
+
+def _jump_stats(
+    valid: NDArray, jump: NDArray, dev: NDArray, steady: NDArray, nominal: NDArray,
+    region: NDArray,
+) -> dict[str, object]:  # fmt: skip
+    """Jumps: their rate, size, and where they are (in holes, at hole edges, near range)."""
+    import cv2
+
+    n = len(valid)
     kernel = np.ones((2 * EDGE_BAND_PX + 1,) * 2, np.uint8)
     near_edge = np.stack([cv2.dilate((~valid[k]).astype(np.uint8), kernel) > 0 for k in range(n)])
     near_valid = np.stack([cv2.dilate(valid[k].astype(np.uint8), kernel) > 0 for k in range(n)])
@@ -249,25 +294,9 @@ def depth_stats(
     band = ((near_edge & valid) | (near_valid & ~valid)) & region
     nj = int(jump.sum())
     mags = np.abs(dev[jump]) * 1e3
-    rpx = int(region.sum())
     near = region & (nominal < NEAR_RANGE_M)
     return {
-        "frames": n,
-        "region_px": rpx,
-        "range_mm": [float(e * 1e3) for e in edges],
-        "noise_mm": noise,
-        "noise_c": c,
-        "noise_exponent": expo,
-        "noise_median_mm": _rms(sd[full]) * 1e3 if full.any() else float("nan"),
-        "step_mm": step,
-        "hole_fraction": float(inv.sum() / (n * max(rpx, 1))),
-        "hole_by_range": holes,
-        "hole_blob_px": (
-            (float(np.median(areas)), float(np.quantile(areas, 0.9))) if areas else (0.0, 0.0)
-        ),
-        "hole_persistence": float(np.mean(iou)) if iou else float("nan"),
-        "jump_rate": float(nj / n / max(rpx, 1) * 1e5),
-        "jump_by_range": jumps,
+        "jump_rate": float(nj / n / max(int(region.sum()), 1) * 1e5),
         "jump_mm": (
             (float(np.median(mags)), float(np.quantile(mags, 0.95)), float(mags.max()))
             if nj

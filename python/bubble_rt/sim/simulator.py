@@ -361,6 +361,7 @@ class Simulator:
             contact=run.contact[i],
             converged=bool(run.converged[i]),
             locator=self._locator,
+            interior=interior,
         )
 
     def _images(

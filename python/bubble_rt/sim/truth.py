@@ -115,6 +115,17 @@ class SurfaceLocator:
         return result
 
 
+@dataclass(frozen=True)
+class TruePatch:
+    """One true contact patch: simulation node indices, force (3,) N the indenter applies on
+    them, and their force-weighted centroid (3,) m, ``sum |f_j| x_j / sum |f_j|`` at the
+    nodes' current positions."""
+
+    nodes: NDArray[np.int64]
+    force: NDArray[np.float64]
+    centroid: NDArray[np.float64]
+
+
 @dataclass
 class GroundTruth:
     """Exact state of one simulated frame.
@@ -129,6 +140,8 @@ class GroundTruth:
         sim_triangles: T x 3 int32.
         contact: M bool, simulation nodes touching the indenter.
         converged: the physics step converged.
+        interior: M bool, the non-rim simulation nodes (None: all), which the net force and
+            torque sum over.
     """
 
     indenter_pose: NDArray[np.float64]
@@ -141,6 +154,56 @@ class GroundTruth:
     contact: NDArray[np.bool_]
     converged: bool = True
     locator: SurfaceLocator | None = field(default=None, repr=False, compare=False)
+    interior: NDArray[np.bool_] | None = None
+
+    def _interior(self) -> NDArray[np.bool_]:
+        n = len(self.node_forces)
+        return np.ones(n, bool) if self.interior is None else np.asarray(self.interior, bool)
+
+    def net_torque(self, at_reference: bool = False) -> NDArray[np.float64]:
+        """(3,) N m: true torque of the contact forces about the mesh origin, ``sum_j x_j x
+        f_j`` over the non-rim simulation nodes at their current positions (the physical
+        torque), or with ``at_reference`` at their untouched positions (the definition the
+        daemon publishes: forces at the untouched mesh's nodes)."""
+        keep = self._interior()
+        x = self.sim_reference_vertices if at_reference else self.sim_vertices
+        x = np.asarray(x, dtype=np.float64)[keep]
+        f = np.asarray(self.node_forces, dtype=np.float64)[keep]
+        return np.asarray(np.cross(x, f).sum(axis=0), dtype=np.float64).reshape(3)
+
+    def patches(self) -> list[TruePatch]:
+        """The true contact patches, largest force first: connected components (over the
+        simulation triangles' edges) of the non-rim nodes that touch the indenter or carry a
+        contact force, each with its force and force-weighted centroid."""
+        from scipy.sparse.csgraph import connected_components
+
+        from bubble_rt.mesh import edge_adjacency
+
+        f = np.asarray(self.node_forces, dtype=np.float64)
+        mag = np.linalg.norm(f, axis=1)
+        touching = (np.asarray(self.contact, dtype=bool) | (mag > 0)) & self._interior()
+        idx = np.flatnonzero(touching)
+        if idx.size == 0:
+            return []
+        A = edge_adjacency(self.sim_triangles, len(f))[idx][:, idx]
+        n_comp, labels = connected_components(A, directed=False)
+        x = np.asarray(self.sim_vertices, dtype=np.float64)
+        out = []
+        for c in range(n_comp):
+            nodes = idx[labels == c]
+            w = mag[nodes]
+            total = float(w.sum())
+            if total <= 0:
+                continue  # touching without load: no force to locate
+            out.append(
+                TruePatch(
+                    nodes=nodes,
+                    force=f[nodes].sum(axis=0),
+                    centroid=(w / total) @ x[nodes],
+                )
+            )
+        out.sort(key=lambda p: -float(np.linalg.norm(p.force)))
+        return out
 
     def _locator(self) -> SurfaceLocator:
         if self.locator is None:
