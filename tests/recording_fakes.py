@@ -1,5 +1,5 @@
-"""Small recordings for the reader, replay and bag tests: a Punyo folder, PNG-folder frames,
-ROS 2 bag frames (a textured dome with a pressure ramp)."""
+"""Small recordings for the reader and replay tests: a Punyo folder, PNG-folder frames, a
+recording cut by a crash (ROS 2 bags: ``broken_bags``)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,19 @@ from pathlib import Path
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
-from bubble_rt.io.mcap import Recorder, iter_messages
-from daemon_fakes import make_frame
-from synth_rgbd import dome_depth, texture
+from bubble_rt.io.mcap import (
+    TOPIC_DEPTH,
+    TOPIC_PRESSURE,
+    TOPIC_RGB,
+    Recorder,
+    iter_messages,
+    raw_image,
+)
+from bubble_rt.io.protocol import pb
+from daemon_fakes import CAM, P0, make_frame
 
 H, W = 24, 32
 FX, FY, CX, CY = 40.0, 41.0, 15.2, 11.7
-T0 = 1_700_000_000.0
-RAMP_PA_PER_S = 300.0  # pressure ramp: interpolation between 100 Hz readings is exact
 
 
 def plane_cloud(z0: float) -> np.ndarray:
@@ -55,26 +60,6 @@ def png_frames(n: int, wrench: bool) -> tuple[list[Frame], Camera]:
         depth[0, :4] = 0.0
         w = np.array([0.1 * i, 0, -1.0, 0, 0, 0]) if wrench else None
         frames.append(Frame(rgb, depth, 106500.0 + i, t=0.5 * i, wrench=w, index=i))
-    return frames, cam
-
-
-def small_frames(n: int = 5, wrench: bool = True, mm: bool = True) -> tuple[list[Frame], Camera]:
-    cam = Camera(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
-    d = dome_depth(cam).astype(np.float32)
-    if mm:  # 16UC1 carries whole millimetres
-        d = (np.round(d * 1000) / 1000).astype(np.float32)
-    rgb = texture(cam.height, cam.width)
-    frames = [
-        Frame(
-            rgb=np.roll(rgb, i, axis=1),
-            depth=d,
-            pressure_pa=101_300.0 + RAMP_PA_PER_S * (i / 30),
-            t=T0 + i / 30,
-            wrench=np.arange(6.0) + i if wrench else None,
-            index=i,
-        )
-        for i in range(n)
-    ]
     return frames, cam
 
 
@@ -124,3 +109,27 @@ def _record_until_killed(path: str, frames: int, more: int) -> None:
 
 def log_times(path):  # type: ignore[no-untyped-def]
     return [t for _, _, t, _ in iter_messages(path)]
+
+
+def bad_mcap(p: Path) -> None:
+    """An MCAP recording whose frames 1..4 are bad: truncated image data, a 12 x 16 image, all-NaN
+    depth, NaN pressure."""
+    rec = Recorder(p, CAM, queue_size=10000)
+    for i in range(8):
+        f = make_frame(i)
+        t = 1000.0 + i / 30
+        rgb = raw_image(f.rgb, t)
+        depth = raw_image(f.depth, t)
+        pressure = pb.PressureSample(time_ns=int(t * 1e9), pressure_pa=P0, frame_index=i)
+        if i == 1:
+            rgb.data = rgb.data[:100]
+        elif i == 2:
+            rgb = raw_image(np.zeros((12, 16, 3), np.uint8), t)
+        elif i == 3:
+            depth = raw_image(np.full((H, W), np.nan, np.float32), t)
+        elif i == 4:
+            pressure.pressure_pa = float("nan")
+        rec.write_message(TOPIC_RGB, rgb, t, i)
+        rec.write_message(TOPIC_DEPTH, depth, t, i)
+        rec.write_message(TOPIC_PRESSURE, pressure, t, i)
+    rec.close()

@@ -108,3 +108,65 @@ def test_estimate_refuses_a_bad_config_naming_the_key(tmp_path, capsys):
     args = ["estimate", str(rec), "--config", str(cfg), "--json", str(tmp_path / "o.json")]
     assert main(args) == 2
     assert "invalid configuration: estimator.k_f" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [b"", b"not a mesh\n"], ids=["empty", "garbage"])
+def test_estimate_refuses_an_unreadable_mesh_file_naming_the_option(tmp_path, capsys, content):
+    """An empty mesh file ended the process inside meshio (SystemExit) without the key."""
+    mesh = tmp_path / "m.vtk"
+    mesh.write_bytes(content)
+    out = tmp_path / "o.json"
+    args = ["estimate", str(tmp_path / "none"), "--mesh", str(mesh), "--json", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"--mesh: cannot read mesh {mesh}" in err and not out.exists()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[estimator]\nmesh = "{mesh}"\n')
+    assert main(["estimate", str(tmp_path / "none"), "--config", str(cfg), "--json", str(out)]) == 2
+    assert "estimator.mesh: cannot read mesh" in capsys.readouterr().err
+
+
+def test_estimate_skips_the_bad_frames_of_an_mcap_recording(tmp_path):
+    """The project's MCAP recordings go through the same tolerant iteration (estimate could
+    not read them at all: it indexed frames, which an MCAP file does not offer)."""
+    from daemon_fakes import coarse_mesh
+    from recording_fakes import bad_mcap
+
+    rec = tmp_path / "bad.mcap"
+    bad_mcap(rec)  # frames 1-4 bad: image cut short, 16 x 12 rgb, all-NaN depth, NaN pressure
+    coarse_mesh().save(tmp_path / "m.vtk")
+    out = tmp_path / "o.json"
+    args = ["estimate", str(rec), "--reference-frames", "0", "--mesh", str(tmp_path / "m.vtk")]
+    assert main([*args, "--json", str(out), "--no-progress"]) == 0
+    res = json.loads(out.read_text())
+    assert [f["index"] for f in res["frames"]] == [0, 5, 6, 7]
+    assert [(s["where"], s["kind"]) for s in res["skipped"]] == [
+        ("bad.mcap frame 1", "colour"),
+        ("bad.mcap frame 2", "frame"),
+        ("bad.mcap frame 3", "depth"),
+        ("bad.mcap frame 4", "pressure"),
+    ]
+    assert res["skipped_counts"] == {"colour": 1, "frame": 1, "depth": 1, "pressure": 1}
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="../shared/data/punyo-demo-0 absent")
+def test_estimate_skips_a_truncated_file_of_a_real_punyo_recording(tmp_path):
+    rec = tmp_path / "rec"
+    (rec / "expand").mkdir(parents=True)
+    for f in (DATA / "expand").iterdir():  # the real frames, one point cloud cut in half
+        (rec / "expand" / f.name).symlink_to(f)
+    (rec / "data.json").symlink_to(DATA / "data.json")
+    cut = rec / "expand" / "pc_7.npy"
+    cut.unlink()
+    data = (DATA / "expand" / "pc_7.npy").read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "o.json"
+    args = [str(rec), "--reference-frames", "0-4", "--mesh", "coarse", "--frames", "5-9"]
+    assert main(["estimate", *args, "--json", str(out), "--no-progress"]) == 0
+    res = json.loads(out.read_text())
+    assert [f["index"] for f in res["frames"]] == [5, 6, 8, 9]
+    (skip,) = res["skipped"]
+    assert skip["where"] == "rec frame 7" and skip["kind"] == "depth"
+    assert "pc_7.npy: unreadable, damaged or truncated" in skip["reason"]
+    for f in res["frames"]:  # untouched frames read about zero, as without the damage
+        assert np.linalg.norm(f["net_force"]) < 0.5

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import os
 import socket
 import struct
@@ -279,11 +280,11 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
 
 
 def test_replay_of_a_bag_at_recorded_pace(tmp_path):
+    from broken_bags import bag_frames
     from bubble_rt.daemon.sources import ReplayCamera
-    from bubble_rt.io.rosbag import write_bag
-    from recording_fakes import small_frames
+    from bubble_rt.io.bag_writer import write_bag
 
-    frames, cam = small_frames(12)
+    frames, cam = bag_frames(12)
     bag = write_bag(tmp_path / "bag", frames, cam)
     src = ReplayCamera(str(bag), realtime=True)
     assert src.name == "replay:bag"
@@ -309,16 +310,16 @@ def test_replay_of_a_bag_at_recorded_pace(tmp_path):
 def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
     import argparse
 
+    from broken_bags import bag_frames
     from bubble_rt.commands import serve
-    from bubble_rt.io.rosbag import write_bag
-    from recording_fakes import small_frames
+    from bubble_rt.io.bag_writer import write_bag
 
     parser = argparse.ArgumentParser()
     serve.add_arguments(parser)
     assert parser.parse_args([]).foxglove is None  # off by default
     assert parser.parse_args(["--foxglove"]).foxglove == fx.DEFAULT_ADDRESS
     assert parser.parse_args(["--foxglove", "ws://0.0.0.0:9"]).foxglove == "ws://0.0.0.0:9"
-    frames, cam = small_frames(3)
+    frames, cam = bag_frames(3)
     bag = write_bag(tmp_path / "bag", frames, cam)
     args = parser.parse_args(["--camera", f"replay:{bag}", "--topics", "/bubble_1"])
     src = serve.bag_replay_source(serve.build_config(args), args)
@@ -329,3 +330,31 @@ def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
     with pytest.raises(SourceError, match="color: no sensor_msgs/msg/Image topic under /bubble_9"):
         serve.bag_replay_source(serve.build_config(args), args)
     assert serve.bag_replay_source(serve.build_config(parser.parse_args([])), args) is None
+
+
+def test_one_log_line_per_client_connection(caplog):
+    """foxglove-sdk logged three or four lines for one client connecting and leaving (its
+    messages, as it logs them; the live level cannot be set in a process that already ran a
+    server: foxglove-sdk reads it once)."""
+    view = FoxgloveView("ws://127.0.0.1:*")
+    view.close()  # its loggers now carry the filter
+    c = "127.0.0.1:40000"
+    emitted = [
+        ("foxglove.websocket.server", logging.INFO, f"Registered client {c}"),
+        (
+            "foxglove.websocket.connected_client.poller",
+            logging.ERROR,
+            f"Error receiving from client {c}: WebSocket protocol error: Connection reset "
+            "without closing handshake",
+        ),
+        (
+            "foxglove.websocket.connected_client.poller",
+            logging.INFO,
+            f"Connection closed by client {c}",
+        ),
+        ("foxglove.websocket.server", logging.INFO, f"Unregistered client {c}"),
+    ]
+    with caplog.at_level(logging.INFO, logger="foxglove"):
+        for name, level, text in emitted:
+            logging.getLogger(name).log(level, text)
+    assert [r.getMessage() for r in caplog.records] == [f"Registered client {c}"]

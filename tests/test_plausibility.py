@@ -218,7 +218,7 @@ def test_large_net_force_without_contact_patch_is_degraded():
 def _sim_bag_without_tf(tmp_path: Path) -> Path:
     """A ROS 2 bag of the simulated bubble (not a Punyo: its own camera pose) with no
     /tf_static, so the reader falls back to the Punyo pose."""
-    from bubble_rt.io.rosbag import write_bag
+    from bubble_rt.io.bag_writer import write_bag
     from bubble_rt.sim import Simulator
 
     sim = Simulator("demo")

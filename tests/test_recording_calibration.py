@@ -304,7 +304,7 @@ def test_calibrate_command_names_a_recording_it_cannot_open(tmp_path, capsys):
 def test_calibrate_command_on_ros2_bags_with_given_rotation(sim, tmp_path, capsys):
     """A ROS 2 bag with a WrenchStamped topic calibrates like the project's own recordings
     (bags are one more layout behind `open_recording`)."""
-    from bubble_rt.io.rosbag import write_bag
+    from bubble_rt.io.bag_writer import write_bag
 
     paths = []
     for i, t in enumerate(sim.trajs):

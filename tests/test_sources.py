@@ -30,11 +30,11 @@ from bubble_rt.daemon.sources import (
     parse_pressure_line,
 )
 from bubble_rt.io.client import Subscriber
-from bubble_rt.io.mcap import TOPIC_DEPTH, TOPIC_PRESSURE, TOPIC_RGB, Recorder, raw_image
-from bubble_rt.io.protocol import pb
+from bubble_rt.io.mcap import (
+    write_recording,
+)
 from daemon_fakes import (
     CAM,
-    P0,
     FakeProcessor,
     FakeSensor,
     H,
@@ -46,8 +46,8 @@ from daemon_fakes import (
     status_of,
 )
 from daemon_fakes import status_of as status
-from recording_fakes import make_punyo
-from waiting import wait_for
+from recording_fakes import bad_mcap, make_punyo
+from waiting import ANY_PORT, wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -604,30 +604,6 @@ def test_replay_with_a_bad_frame_never_restarts_from_frame_0(tmp_path):
     assert emitted == [0, 2, 3, 4]
 
 
-def bad_mcap(p: Path) -> None:
-    """An MCAP recording whose frames 1..4 are bad: truncated image data, a 12 x 16 image, all-NaN
-    depth, NaN pressure."""
-    rec = Recorder(p, CAM, queue_size=10000)
-    for i in range(8):
-        f = make_frame(i)
-        t = 1000.0 + i / 30
-        rgb = raw_image(f.rgb, t)
-        depth = raw_image(f.depth, t)
-        pressure = pb.PressureSample(time_ns=int(t * 1e9), pressure_pa=P0, frame_index=i)
-        if i == 1:
-            rgb.data = rgb.data[:100]
-        elif i == 2:
-            rgb = raw_image(np.zeros((12, 16, 3), np.uint8), t)
-        elif i == 3:
-            depth = raw_image(np.full((H, W), np.nan, np.float32), t)
-        elif i == 4:
-            pressure.pressure_pa = float("nan")
-        rec.write_message(TOPIC_RGB, rgb, t, i)
-        rec.write_message(TOPIC_DEPTH, depth, t, i)
-        rec.write_message(TOPIC_PRESSURE, pressure, t, i)
-    rec.close()
-
-
 @pytest.mark.timeout(120)
 def test_bad_mcap_frames_are_skipped_counted_and_named(tmp_path):
     p = tmp_path / "bad.mcap"
@@ -646,3 +622,22 @@ def test_bad_mcap_frames_are_skipped_counted_and_named(tmp_path):
     assert "cannot reshape array of size 100" in bad[0] and "16 x 12" in bad[1]
     assert "no valid pixel" in bad[2] and "not finite" in bad[3]
     assert src.stats.received == 4
+
+
+@pytest.mark.timeout(120)
+def test_mcap_with_the_reference_only_is_reported_and_ends(tmp_path, capsys):
+    """An MCAP cut after its reference frames was accepted and the replay stalled forever."""
+    from bubble_rt.cli import main
+
+    p = tmp_path / "ref_only.mcap"
+    write_recording(p, [], CAM, reference=[make_frame(i) for i in range(3)])
+    with pytest.raises(SourceError, match="no frame to replay after the reference"):
+        ReplayCamera(str(p), realtime=False)
+    args = ["serve", "--camera", f"replay:{p}", "--duration", "30"]
+    net = ["--pub", ANY_PORT, "--control", ANY_PORT]
+    # Refused at start (exit 1): a stalled replay would run out the 30 s duration and exit 0.
+    assert main(args + net) == 1
+    assert "no frame to replay" in capsys.readouterr().err
+    out = tmp_path / "o.json"
+    assert main(["estimate", str(p), "--json", str(out), "--no-progress"]) == 3
+    assert "no frame in the recording" in capsys.readouterr().err and not out.exists()

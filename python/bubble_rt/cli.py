@@ -32,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         mod = importlib.import_module(f"bubble_rt.commands.{name}")
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        p = sub.add_parser(
+            name, help=mod.HELP, description=mod.HELP, epilog=getattr(mod, "EPILOG", None)
+        )
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser

@@ -13,6 +13,7 @@ scale (``from_uint16``); both take the pressure with an explicit unit ("Pa", "hP
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -28,8 +29,19 @@ HPA = 100.0  # pascals per hectopascal
 PRESSURE_UNITS: dict[str, float] = {"Pa": 1.0, "hPa": HPA, "kPa": 1000.0, "mbar": HPA}
 
 
+#: What a skipped frame or reading was counted under (:attr:`FrameFault.kind`): the colour
+#: image, the depth image, the pressure reading, or the frame as a whole (a file that cannot
+#: be read, images of different sizes, an estimate that failed).
+FAULT_KINDS = ("colour", "depth", "pressure", "frame")
+
+
 class FrameError(ValueError):
-    """A frame is malformed; the message names the field at fault."""
+    """A frame is malformed; the message names the field at fault, ``kind`` (one of
+    :data:`FAULT_KINDS`) says which part of the frame it is."""
+
+    def __init__(self, message: str = "", kind: str = "frame") -> None:
+        super().__init__(message)
+        self.kind = kind if kind in FAULT_KINDS else "frame"
 
 
 def pressure_to_pa(value: float, unit: str) -> float:
@@ -42,7 +54,7 @@ def pressure_to_pa(value: float, unit: str) -> float:
         else float(value)
     )
     if not np.isfinite(p):
-        raise FrameError(f"pressure is not finite: {value!r}")
+        raise FrameError(f"pressure is not finite: {value!r}", "pressure")
     return p * PRESSURE_UNITS[unit]
 
 
@@ -76,22 +88,23 @@ class Frame:
         if self.rgb is not None:
             rgb = np.asarray(self.rgb)
             if rgb.ndim != 3 or rgb.shape[2] != 3:
-                raise FrameError(f"rgb must be H x W x 3, got shape {rgb.shape}")
+                raise FrameError(f"rgb must be H x W x 3, got shape {rgb.shape}", "colour")
             if rgb.dtype != np.uint8:
-                raise FrameError(f"rgb must be uint8, got dtype {rgb.dtype}")
+                raise FrameError(f"rgb must be uint8, got dtype {rgb.dtype}", "colour")
             self.rgb = rgb
         if self.depth is not None:
             d = np.asarray(self.depth)
             if d.ndim != 2:
-                raise FrameError(f"depth must be H x W, got shape {d.shape}")
+                raise FrameError(f"depth must be H x W, got shape {d.shape}", "depth")
             if not np.issubdtype(d.dtype, np.floating):
                 raise FrameError(
                     f"depth must be float metres, got dtype {d.dtype} "
-                    "(use Frame.from_uint16 for 16-bit depth with a scale)"
+                    "(use Frame.from_uint16 for 16-bit depth with a scale)",
+                    "depth",
                 )
             d = d.astype(np.float32, copy=False)
             if not np.any(d > 0):  # NaN compares False: all-NaN is all-invalid too
-                raise FrameError("depth has no valid pixel (all zero, negative or NaN)")
+                raise FrameError("depth has no valid pixel (all zero, negative or NaN)", "depth")
             self.depth = d
         if self.rgb is not None and self.depth is not None:
             if self.rgb.shape[:2] != self.depth.shape:
@@ -102,9 +115,11 @@ class Frame:
         try:
             p = float(self.pressure_pa)
         except (TypeError, ValueError) as exc:
-            raise FrameError(f"pressure_pa must be a number, got {self.pressure_pa!r}") from exc
+            raise FrameError(
+                f"pressure_pa must be a number, got {self.pressure_pa!r}", "pressure"
+            ) from exc
         if not np.isfinite(p):
-            raise FrameError(f"pressure_pa is not finite: {p}")
+            raise FrameError(f"pressure_pa is not finite: {p}", "pressure")
         self.pressure_pa = p
         if self.wrench is not None:
             w = np.asarray(self.wrench, dtype=np.float64).reshape(-1)
@@ -135,7 +150,8 @@ class Frame:
                 if img is not None and tuple(img.shape[:2]) != want:
                     raise FrameError(
                         f"{name} size {img.shape[1]} x {img.shape[0]} differs from the camera's "
-                        f"{camera.width} x {camera.height}"
+                        f"{camera.width} x {camera.height}",
+                        "colour" if name == "rgb" else "depth",
                     )
         return self
 
@@ -169,10 +185,13 @@ class Frame:
         if pts.ndim == 3:
             pts = pts.reshape(-1, pts.shape[-1])
         if pts.ndim != 2 or pts.shape[1] != 3:
-            raise FrameError(f"point cloud must be (H*W) x 3, got shape {np.shape(points)}")
+            raise FrameError(
+                f"point cloud must be (H*W) x 3, got shape {np.shape(points)}", "depth"
+            )
         if pts.shape[0] != h * w:
             raise FrameError(
-                f"point cloud has {pts.shape[0]} points; the camera's {w} x {h} needs {h * w}"
+                f"point cloud has {pts.shape[0]} points; the camera's {w} x {h} needs {h * w}",
+                "depth",
             )
         z = pts[:, 2].astype(np.float32)
         with np.errstate(invalid="ignore"):
@@ -181,7 +200,9 @@ class Frame:
                 ok &= z < max_depth_m
         depth = np.where(ok, z, np.float32(0)).reshape(h, w)
         if not ok.any():
-            raise FrameError("point cloud has no valid point (all zero, NaN or beyond max depth)")
+            raise FrameError(
+                "point cloud has no valid point (all zero, NaN or beyond max depth)", "depth"
+            )
         p = pressure_to_pa(pressure, pressure_unit)
         return cls(rgb=rgb, depth=depth, pressure_pa=p, **fields).validate(camera)
 
@@ -214,15 +235,75 @@ class Frame:
 
 @dataclass(frozen=True)
 class FrameFault:
-    """A frame of a recording that could not be read; replay skips, counts and names it.
+    """A frame (or a reading) of a recording that could not be used: every reader yields one
+    in its place, and consumers skip, count (per ``kind``) and name it.
 
-    ``where`` names the recording and the frame (or the file at fault), ``reason`` says what
-    is wrong (truncated file, wrong shape or dtype, no valid depth, NaN pressure, ...).
+    ``index`` is the frame's position in the recording (a reading's position in its stream for
+    ``kind == "pressure"`` readings), ``where`` names the recording's file and the frame,
+    ``reason`` says what is wrong (truncated file, wrong shape or dtype, no valid depth, NaN
+    pressure, ...), ``kind`` is one of :data:`FAULT_KINDS`.
     """
 
     index: int
     where: str
     reason: str
+    kind: str = "frame"
+    #: A reading of a stream the frames interpolate (a bag's pressure): skipping it costs no
+    #: frame.
+    reading: bool = False
 
     def __str__(self) -> str:
         return f"{self.where}: {self.reason}"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "kind": self.kind,
+            "reading": self.reading,
+            "where": self.where,
+            "reason": self.reason,
+        }
+
+
+def fault_of(exc: BaseException, index: int, where: str) -> FrameFault:
+    """The FrameFault for a frame whose reading raised ``exc``: a FrameError keeps its
+    message and kind, any other exception (a reshape of a truncated buffer, a damaged file's
+    decoder) is named by its type."""
+    if isinstance(exc, FrameError):
+        return FrameFault(index, where, str(exc), exc.kind)
+    return FrameFault(index, where, f"{type(exc).__name__}: {exc}")
+
+
+def tolerant(index: int, where: str, load: Callable[[], Frame]) -> Frame | FrameFault:
+    """``load()``, or the FrameFault saying why it failed: the one way every recording layout
+    (Punyo and PNG folders, ROS 2 bags, MCAP) turns a bad frame into a skipped one."""
+    try:
+        return load()
+    except Exception as exc:  # any damage to one frame ends that frame only
+        return fault_of(exc, index, where)
+
+
+class FaultTally:
+    """Skipped frames and readings of a run: counts per kind and the faults themselves
+    (the first ``keep``, so a recording that is all damage cannot exhaust memory)."""
+
+    def __init__(self, keep: int = 1000) -> None:
+        self.counts: dict[str, int] = {}
+        self.faults: list[FrameFault] = []
+        self.keep = keep
+
+    def add(self, fault: FrameFault) -> None:
+        self.counts[fault.kind] = self.counts.get(fault.kind, 0) + 1
+        if len(self.faults) < self.keep:
+            self.faults.append(fault)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def summary(self) -> str:
+        """ "3 skipped (depth 2, pressure 1)", or "" when nothing was skipped."""
+        if not self.counts:
+            return ""
+        parts = ", ".join(f"{k} {n}" for k, n in sorted(self.counts.items()))
+        return f"{self.total} skipped ({parts})"

@@ -140,10 +140,18 @@ class Mesh:
         if not path.exists():
             raise FileNotFoundError(f"mesh file not found: {path}")
         regular_file("mesh", path)  # a FIFO or device would block meshio or never end
+        if path.stat().st_size == 0:
+            raise MeshError(f"cannot read mesh {path}: the file is empty (0 bytes)")
         try:
             m = meshio.read(path)
-        except Exception as exc:  # meshio raises many types for malformed files
-            raise MeshError(f"cannot read mesh {path}: {exc}") from exc
+        # meshio raises many types for malformed files, and SystemExit when no reader fits.
+        except (Exception, SystemExit) as exc:
+            why = (
+                f"meshio has no reader that reads it (as {path.suffix or 'any format'})"
+                if isinstance(exc, SystemExit)
+                else f"{type(exc).__name__}: {exc}"
+            )
+            raise MeshError(f"cannot read mesh {path}: {why}") from None
         tris = [c.data for c in m.cells if c.type == "triangle"]
         if not tris:
             raise MeshError(f"{path}: no triangle cells")

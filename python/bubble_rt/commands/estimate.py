@@ -15,14 +15,27 @@ normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
 per frame (see :mod:`bubble_rt.io.rosbag`). ``--json`` or ``--bag`` (or both) is required.
+
+A frame that cannot be read (or estimated), or a pressure reading that is not finite, is
+skipped and the run goes on: the JSON lists each under "skipped" ({index, kind, where,
+reason}; kind colour | depth | pressure | frame) with counts per kind in "skipped_counts",
+and a line on stderr says how many. Exit status: 0 done (also with skipped frames),
+2 bad arguments or a recording that cannot be opened, 3 (EXIT_NO_FRAME) no usable frame: every
+reference frame or every frame to estimate was skipped, or the reference frames are refused
+(the plausibility checks, or no membrane where the mesh is fitted; nothing is written).
 """
 
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
+from bubble_rt.frames import FaultTally, FrameFault
+
+if TYPE_CHECKING:
+    from bubble_rt.frames import Frame
 
 #: Exit status when no usable frame is left, e.g. reference frames the plausibility checks
 #: refuse (their pressure out of range, or a force read untouched: the message says what to
@@ -30,6 +43,13 @@ from bubble_rt.estimation.names import IMAGE_FLOW_METHODS
 EXIT_NO_FRAME = 3
 
 HELP = "run the force estimator over a recorded sequence and write per-frame results as JSON"
+
+EPILOG = (
+    "Bad frames (and non-finite pressure readings) are skipped and listed under 'skipped' in "
+    "the JSON. Exit status: 0 done (also with skipped frames), 2 bad arguments or an "
+    f"unreadable recording, {EXIT_NO_FRAME} no usable frame (every reference frame or every "
+    "frame to estimate was skipped, or the reference frames are refused: see the message)."
+)
 
 
 def parse_frames(spec: str, n: int) -> list[int]:
@@ -105,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
 
     from bubble_rt.config import ConfigError, DaemonConfig
     from bubble_rt.estimation.pipeline import Pipeline, capture_settings
-    from bubble_rt.frames import FrameError
+    from bubble_rt.frames import FrameError, fault_of
     from bubble_rt.io.recordings import open_recording
     from bubble_rt.mesh import PRESET_NODES
 
@@ -135,27 +155,55 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"bubble-rt estimate: invalid configuration: {exc}", file=sys.stderr)
         return 2
+    if cfg.estimator.mesh not in PRESET_NODES:  # a mesh file: refused now, with its key
+        from bubble_rt.mesh import Mesh
+
+        try:
+            Mesh.load(cfg.estimator.mesh)
+        except (ValueError, OSError) as exc:  # MeshError, missing file
+            key = "--mesh" if args.mesh else "estimator.mesh"
+            print(f"bubble-rt estimate: {key}: {exc}", file=sys.stderr)
+            return 2
     try:
         rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
     except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
     n = len(rec)
+    # (this project's MCAP recordings state no layout: the sensor profile is the default's)
+    layout = getattr(rec, "layout", "mcap")
+    if n == 0:  # e.g. an MCAP file cut after its reference frames
+        print(f"bubble-rt estimate: {args.recording}: no frame in the recording", file=sys.stderr)
+        return EXIT_NO_FRAME
     try:
         ref_idx = parse_frames(args.reference_frames, n)
         todo = parse_frames(args.frames, n) if args.frames else list(range(n))
     except ValueError as exc:
         print(f"bubble-rt estimate: {exc}", file=sys.stderr)
         return 2
-    settings = capture_settings(cfg, realtime=False, layout=rec.layout)
+    tally = FaultTally()
+    for fault in getattr(rec, "reading_faults", []):  # bag pressure readings skipped
+        tally.add(fault)
+    for note in (getattr(rec, "topics_note", ""), getattr(rec, "lost", "")):
+        if note:  # topics paired across namespaces; what a cut bag lost
+            print(f"bubble-rt estimate: {note}", file=sys.stderr)
+    ref_frames = [f for _, f in _pick(rec, ref_idx, tally)]
+    if not ref_frames:
+        print(
+            f"bubble-rt estimate: no usable reference frame ({tally.summary()}): "
+            + "; ".join(str(f) for f in tally.faults[-len(ref_idx) :]),
+            file=sys.stderr,
+        )
+        return EXIT_NO_FRAME
+    settings = capture_settings(cfg, realtime=False, layout=layout)
     preset = cfg.estimator.mesh in PRESET_NODES
     settings["fit"] = settings["fit"] and preset
     try:
-        estimator = Pipeline.capture([rec[i] for i in ref_idx], rec.camera, **settings)
+        estimator = Pipeline.capture(ref_frames, rec.camera, **settings)
     except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
         print(
             f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
-            f"{getattr(rec, 'placement', rec.layout)})",
+            f"{getattr(rec, 'placement', layout)})",
             file=sys.stderr,
         )
         return EXIT_NO_FRAME
@@ -166,22 +214,40 @@ def run(args: argparse.Namespace) -> int:
         else {"file": str(cfg.estimator.mesh), "fitted": False}
     )
     mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
-    if args.save_mesh:
-        mesh.save(args.save_mesh)
     R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
 
+    results: list[tuple[Frame, Any]] = []
+    bar = tqdm(total=len(todo), desc="estimate", unit="frame", disable=args.no_progress)
+    for pos, frame in _pick(rec, todo, tally):
+        bar.update(1)
+        try:
+            e = estimator.process(frame)
+            if not np.all(np.isfinite(np.asarray(e.net_force, dtype=np.float64))):
+                raise FrameError("the estimate is not finite")
+        except Exception as exc:  # one frame the estimator cannot take ends that frame only
+            tally.add(fault_of(exc, pos, f"{Path(args.recording).name} frame {pos}"))
+            continue
+        results.append((frame, e))
+    bar.close()
+    if tally.total:
+        print(f"bubble-rt estimate: {tally.summary()}", file=sys.stderr)
+    if not results:
+        print(
+            f"bubble-rt estimate: no usable frame to estimate ({tally.summary()})", file=sys.stderr
+        )
+        return EXIT_NO_FRAME
+    if args.save_mesh:
+        mesh.save(args.save_mesh)
     bag = None
     if args.bag:
-        from bubble_rt.io.rosbag import BagWriter
+        from bubble_rt.io.bag_writer import BagWriter
 
         bag = BagWriter(args.bag)
     from bubble_rt.wrench import PatchFinder
 
     finder = PatchFinder(mesh)
     frames_out = []
-    for i in tqdm(todo, desc="estimate", unit="frame", disable=args.no_progress):
-        frame = rec[i]
-        e = estimator.process(frame)
+    for frame, e in results:
         f_mesh = np.asarray(e.net_force, dtype=np.float64)
         tau_mesh = finder.net_torque(e.node_forces)
         patches = finder.patches(
@@ -229,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
     cam = rec.camera
     out = {
         "recording": str(Path(args.recording).resolve()),
-        "layout": rec.layout,
+        "layout": layout,
         "camera": {
             "fx": cam.fx,
             "fy": cam.fy,
@@ -244,10 +310,36 @@ def run(args: argparse.Namespace) -> int:
         "reference_frames": ref_idx,
         "reference_pressure_pa": reference.pressure_pa,
         "ambient_pa": settings["config"].ambient_pa,
+        "topics": getattr(rec, "topics", None),
+        "lost": getattr(rec, "lost", ""),
         "frames": frames_out,
+        "skipped": [f.as_dict() for f in tally.faults],
+        "skipped_counts": dict(tally.counts),
     }
     if bag is not None:
         bag.close()
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
+
+
+def _pick(rec: Any, positions: list[int], tally: FaultTally) -> Iterator[tuple[int, Frame]]:
+    """(position, frame) of the recording's frames at ``positions``, in recording order, in one
+    pass (every layout, bags and MCAP files included); a bad frame among them is added to
+    ``tally`` and skipped. Positions count frames and frame faults alike (0..len(rec)-1)."""
+    want = set(positions)
+    last = max(want)
+    it = rec.frames(faults=True)
+    try:
+        for pos, f in enumerate(it):
+            if pos in want:
+                if isinstance(f, FrameFault):
+                    tally.add(f)
+                else:
+                    yield pos, f
+            if pos >= last:
+                break
+    finally:
+        close = getattr(it, "close", None)
+        if close is not None:
+            close()

@@ -168,4 +168,5 @@ def bad_frame_reason(cam: Any, now: float) -> str:
     st = cam.stats
     if now - st.last_error_time > BAD_FRAME_HOLD_S or not st.last_error.startswith("skipped"):
         return ""
-    return f"{st.last_error} ({st.errors.get('bad_frame', 0)} skipped so far)"
+    n = st.errors.get("bad_frame", 0) + st.errors.get("bad_reading", 0)
+    return f"{st.last_error} ({n} skipped so far)"

@@ -4,6 +4,7 @@ worker thread, so building the scene never delays publishing (messages from
 
 from __future__ import annotations
 
+import logging
 import threading
 from typing import Any
 
@@ -15,6 +16,29 @@ from bubble_rt.io.foxglove import (
     channel_specs,
     parse_address,
 )
+
+
+class _OneLinePerClient(logging.Filter):
+    """foxglove-sdk logs a client's connection on ``foxglove.websocket.server`` ("Registered
+    client ...") and then two or three more lines when it leaves ("Connection closed by
+    client", "Unregistered client", an ERROR for a reset without closing handshake, which a
+    browser tab closing does). Keep the one line per connection."""
+
+    DROP = ("Unregistered client", "Connection closed by client", "Error receiving from client")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(self.DROP)
+
+
+_ONE_LINE = _OneLinePerClient()
+
+
+def quiet_client_logs() -> None:
+    """Install the one-line-per-client filter on foxglove-sdk's loggers (idempotent)."""
+    for name in ("foxglove.websocket.server", "foxglove.websocket.connected_client.poller"):
+        logger = logging.getLogger(name)
+        if _ONE_LINE not in logger.filters:
+            logger.addFilter(_ONE_LINE)
 
 
 class FoxgloveView:
@@ -37,6 +61,7 @@ class FoxgloveView:
         self.server: Any = None
         self.address = ""
         if serve:
+            quiet_client_logs()
             host, port = parse_address(address)
             self.server = foxglove.start_server(
                 name="bubble_rt", host=host, port=port, context=self.context

@@ -29,7 +29,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 
 from bubble_rt.camera import Camera
-from bubble_rt.frames import Frame
+from bubble_rt.frames import FaultTally, Frame, FrameFault, fault_of
 
 T = TypeVar("T")
 log = logging.getLogger("bubble_rt.daemon.sources")
@@ -300,6 +300,8 @@ class IterableCamera(CameraSource):
         self.camera_check = False
         #: Bad frames skipped, named (file and index) with the reason; the last 100.
         self.bad_frames: deque[str] = deque(maxlen=100)
+        #: Skipped frames and readings counted per kind (colour, depth, pressure, frame).
+        self.skipped = FaultTally(keep=100)
         self.rate_hz = rate_hz
         self.loop = loop
         self.by_timestamps = by_timestamps
@@ -322,27 +324,33 @@ class IterableCamera(CameraSource):
             self.stats.error("failed", f"{type(exc).__name__}: {exc}")
         self.finished.set()
 
+    def _skip(self, fault: FrameFault) -> None:
+        """Count and name a FrameFault: ``bad_reading`` for a pressure reading a bag's frames
+        do without, else ``bad_frame``; ``skipped`` counts them per kind."""
+        what = "reading" if fault.reading else "frame"
+        self.stats.error(f"bad_{what}", f"skipped bad {what}: {fault}")
+        self.bad_frames.append(str(fault))
+        self.skipped.add(fault)
+        log.warning("%s: skipped bad %s: %s", self.name, what, fault)
+
     def _run(self) -> bool | None:
         next_t = time.monotonic()
         prev_src_t: float | None = None
+        good = 0
         for frame in self._frames():
             if self._stop.is_set():
                 return False
             if not isinstance(frame, Frame):  # a FrameFault: skipped, counted and named
-                self.stats.error("bad_frame", f"skipped bad frame: {frame}")
-                self.bad_frames.append(str(frame))
-                log.warning("%s: skipped bad frame: %s", self.name, frame)
+                self._skip(frame)
                 continue
             if self.camera_check:
                 try:
                     frame.validate(self.camera, need_images=True)
                 except Exception as exc:
-                    where = frame.meta.get("source", self.name)
-                    fault = f"{where} frame {frame.index}: {exc}"
-                    self.stats.error("bad_frame", f"skipped bad frame: {fault}")
-                    self.bad_frames.append(fault)
-                    log.warning("%s: skipped bad frame: %s", self.name, fault)
+                    where = f"{frame.meta.get('source', self.name)} frame {frame.index}"
+                    self._skip(fault_of(exc, frame.index, where))
                     continue
+            good += 1
             if self.rate_hz:
                 period = 1.0 / self.rate_hz
                 if self.by_timestamps and prev_src_t is not None:
@@ -354,6 +362,15 @@ class IterableCamera(CameraSource):
                 # Do not try to catch up after a hiccup: pace from now.
                 next_t = max(next_t, time.monotonic() - period) + period
             self.emit(self._stamp(frame))
+        if good == 0 and not self._stop.is_set():
+            # A pass without one usable frame would loop forever without output.
+            self.stats.connected = False
+            self.stats.error(
+                "no_frame",
+                f"no usable frame in a whole pass ({self.skipped.summary() or 'no frame at all'})",
+            )
+            log.error("%s: no usable frame in a whole pass: the source ends", self.name)
+            return False
         return None if self.loop else False
 
 
@@ -488,15 +505,22 @@ def ReplayCamera(
             rec = open_recording(p, **bag_options)
     except Exception as exc:
         raise SourceError(f"replay: cannot read {path}: {exc}") from exc
+    if len(rec) == 0:  # e.g. an MCAP file cut after its reference frames: nothing to replay
+        lost = f" ({report.summary()})" if report is not None else ""
+        raise SourceError(f"replay: {path}: no frame to replay after the reference{lost}")
+    if getattr(rec, "topics_note", ""):
+        log.info("replay: %s", rec.topics_note)
 
     published: set[int] = getattr(rec, "published", set()) if recorded else set()
 
     def frames() -> Iterator[Any]:
-        # Bags yield frames only; the project's recordings also name the frames they skip.
-        out = rec.frames(faults=True) if hasattr(rec, "frames") else iter(rec)
+        # Every layout names the frames it skips (FrameFault); a bag also the pressure
+        # readings it skipped, once per pass.
+        yield from getattr(rec, "reading_faults", [])
+        out = rec.frames(faults=True)
         if published:  # the frames the live run solved, as it solved them
-            return (f for f in out if not isinstance(f, Frame) or f.index in published)
-        return out
+            out = (f for f in out if not isinstance(f, Frame) or f.index in published)
+        yield from out
 
     src = IterableCamera(
         frames,
@@ -517,6 +541,9 @@ def ReplayCamera(
     src.recording_report = report  # type: ignore[attr-defined]
     src.recorded_settings = getattr(rec, "settings_toml", "") if recorded else ""  # type: ignore[attr-defined]
     src.recorded_mesh = getattr(rec, "mesh", None) if recorded else None  # type: ignore[attr-defined]
+    if getattr(rec, "lost", ""):  # a cut or damaged bag: what was lost
+        src.stats.error("recording", rec.lost)
+        log.warning("replay: %s", rec.lost)
     if report is not None and not report.complete:
         text = report.summary()
         if getattr(rec, "frames_indexed", None) is not None and len(rec) < rec.frames_indexed:

@@ -34,6 +34,7 @@ writing, keeps the reason in ``Recorder.failed`` and drops (counts) what it is g
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import queue
@@ -49,7 +50,7 @@ import numpy as np
 
 from bubble_rt._validate import file_kind
 from bubble_rt.camera import Camera
-from bubble_rt.frames import Frame, FrameError, FrameFault
+from bubble_rt.frames import Frame, FrameFault, tolerant
 from bubble_rt.io import mcap_scan
 from bubble_rt.io.mcap_scan import McapFileError, ReadReport, scan
 from bubble_rt.io.protocol import pb
@@ -588,7 +589,10 @@ class McapRecording:
                     partial.setdefault(seq, {})[key] = image_array(msg)
                 except Exception as exc:
                     partial.setdefault(seq, {}).setdefault("faults", []).append(
-                        f"{topic}: {type(exc).__name__}: {exc}"
+                        (
+                            f"{topic}: {type(exc).__name__}: {exc}",
+                            "colour" if key == "rgb" else "depth",
+                        )
                     )
             elif topic == wrench_t:
                 partial.setdefault(seq, {})["wrench"] = list(msg.force) + list(msg.torque)
@@ -600,10 +604,15 @@ class McapRecording:
                 idx = int(msg.frame_index)
                 where = f"{name} frame {idx}"
                 if parts.get("faults"):
-                    yield FrameFault(idx, where, "; ".join(parts["faults"]))
+                    texts, kinds = zip(*parts["faults"], strict=True)
+                    kind = kinds[0] if len(set(kinds)) == 1 else "frame"
+                    yield FrameFault(idx, where, "; ".join(texts), kind)
                     continue
-                try:
-                    yield Frame(
+                yield tolerant(
+                    idx,
+                    where,
+                    functools.partial(
+                        Frame,
                         rgb=parts.get("rgb"),
                         depth=parts.get("depth"),
                         pressure_pa=msg.pressure_pa,
@@ -611,9 +620,8 @@ class McapRecording:
                         t_pressure=msg.time_ns / 1e9,
                         index=idx,
                         wrench=parts.get("wrench"),
-                    )
-                except (FrameError, ValueError, TypeError) as exc:
-                    yield FrameFault(idx, where, str(exc))
+                    ),
+                )
 
     def force_frames(self) -> Iterator[Any]:
         for topic, msg, _, _ in iter_messages(self.path):
@@ -636,7 +644,7 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> ReadRe
     fh = open_new_file(dst, overwrite=overwrite)
     try:
         writer = McapWriter(fh, compression=CompressionType.LZ4)
-        writer.start(profile="", library="bubble_rt recover")
+        writer.start(profile=_profile(src), library="bubble_rt recover")
         schemas: dict[int, int] = {}
         channels: dict[int, int] = {}
         pending: dict[int, Any] = {}
@@ -664,6 +672,17 @@ def recover(src: str | Path, dst: str | Path, overwrite: bool = False) -> ReadRe
     finally:
         fh.close()
     return report
+
+
+def _profile(path: str | Path) -> str:
+    """The MCAP header's profile ("ros2" for a ROS 2 bag), kept by :func:`recover`."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            return str(make_reader(fh).get_header().profile)
+    except Exception:  # a damaged header: the records are still worth recovering
+        return ""
 
 
 def _chain(first: Any, rest: Iterator[Any]) -> Iterator[Any]:

@@ -45,6 +45,7 @@ import csv
 import json
 import re
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +54,7 @@ from numpy.typing import NDArray
 
 from bubble_rt._validate import PathError, regular_file
 from bubble_rt.camera import Camera
-from bubble_rt.frames import Frame, FrameError, FrameFault
+from bubble_rt.frames import Frame, FrameError, FrameFault, tolerant
 from bubble_rt.io.punyo import punyo_pose
 
 
@@ -85,17 +86,22 @@ def _regular(path: Path) -> Path:
         raise FrameError(str(exc)) from None
 
 
+#: The Punyo layout's file prefixes and the part of a frame each holds.
+_NPY_KINDS = {"rgb": "colour", "pc": "depth", "pressure": "pressure"}
+
+
 def _load_npy(path: Path, mmap_mode: Any = None) -> Any:
     """np.load naming the file when it is missing, truncated or not an .npy file."""
+    kind = _NPY_KINDS.get(path.name.split("_")[0], "frame")
     try:
         return np.load(_regular(path), mmap_mode=mmap_mode, allow_pickle=False)
     except FileNotFoundError:
-        raise FrameError(f"{path}: missing") from None
-    except FrameError:
-        raise
+        raise FrameError(f"{path}: missing", kind) from None
+    except FrameError as exc:
+        raise FrameError(str(exc), kind) from None
     except Exception as exc:
         raise FrameError(
-            f"{path}: unreadable, damaged or truncated ({type(exc).__name__}: {exc})"
+            f"{path}: unreadable, damaged or truncated ({type(exc).__name__}: {exc})", kind
         ) from None
 
 
@@ -140,24 +146,12 @@ class Recording:
         """Every frame in order; a frame that cannot be read becomes a :class:`FrameFault`
         (with ``faults``; otherwise it is skipped) and reading goes on with the next one."""
         for i in range(len(self)):
-            try:
-                frame = self._load(i)
-                if frame.rgb is not None and frame.rgb.shape[:2] != (
-                    self.camera.height,
-                    self.camera.width,
-                ):
-                    raise FrameError(
-                        f"rgb is {frame.rgb.shape[0]} x {frame.rgb.shape[1]}, the recording's "
-                        f"camera is {self.camera.height} x {self.camera.width}"
-                    )
-            except Exception as exc:
-                if faults:
-                    text = (
-                        str(exc) if isinstance(exc, FrameError) else f"{type(exc).__name__}: {exc}"
-                    )
-                    yield FrameFault(i, f"{self.path.name} frame {i}", text)
-                continue
-            yield frame
+            f = tolerant(i, f"{self.path.name} frame {i}", partial(self._checked, i))
+            if faults or isinstance(f, Frame):
+                yield f
+
+    def _checked(self, i: int) -> Frame:
+        return self._load(i).validate(self.camera)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.path)!r}, frames={len(self)})"
@@ -228,10 +222,13 @@ class PunyoRecording(Recording):
         if rgb.shape != (self.camera.height, self.camera.width, 3) or rgb.dtype != np.uint8:
             raise FrameError(
                 f"{self._exp / f'rgb_{i}.npy'}: {' x '.join(map(str, rgb.shape))} {rgb.dtype}, "
-                f"expected {self.camera.height} x {self.camera.width} x 3 uint8"
+                f"expected {self.camera.height} x {self.camera.width} x 3 uint8",
+                "colour",
             )
         if np.size(pressure) != 1 or not np.isfinite(np.asarray(pressure, dtype=float)).all():
-            raise FrameError(f"{self._exp / f'pressure_{i}.npy'}: not a finite scalar: {pressure}")
+            raise FrameError(
+                f"{self._exp / f'pressure_{i}.npy'}: not a finite scalar: {pressure}", "pressure"
+            )
         t = float(i)
         wrench = None
         meta: dict[str, Any] = {"source": str(self.path)}
