@@ -170,6 +170,25 @@ class FakeSensor:
         os.close(self.slave)
 
 
+class FakeSimulator:
+    """The ``bubble_rt.sim.Simulator`` interface the sim source uses: a 4-frame scene of
+    ``make_frame`` frames (``SimCamera(simulator="daemon_fakes:FakeSimulator")``; it runs in
+    the sim source's renderer process, which imports it by that name)."""
+
+    def __init__(self, scene: str, progress: Any = None) -> None:
+        from types import SimpleNamespace
+
+        self.scene = SimpleNamespace(frames=4, rates=SimpleNamespace(camera_hz=30.0))
+        self.camera = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
+
+    def frames(self):  # type: ignore[no-untyped-def]
+        for i in range(4):
+            yield make_frame(i)
+
+    def reference_frames(self, n: int) -> list[Frame]:
+        return [make_frame(-n + k) for k in range(n)]
+
+
 def constant_pressure() -> tuple[ConstantPressure, None]:
     return ConstantPressure(P0), None
 
@@ -248,16 +267,23 @@ def main() -> None:
     ap.add_argument("--pub", required=True)
     ap.add_argument("--control", required=True)
     ap.add_argument("--record", default="")
+    ap.add_argument("--sim", action="store_true", help="SimCamera on FakeSimulator")
+    ap.add_argument("--duration", type=float, default=0.0)
     a = ap.parse_args()
     cfg = fake_config(
         **{"network.pub": a.pub, "network.control": a.control, "recording.path": a.record}
     )
     stop = threading.Event()
     install_signal_handlers(stop)
+    camera: IterableCamera = ScriptedCamera()
+    if a.sim:
+        from bubble_rt.daemon.sources import SimCamera
+
+        camera = SimCamera("fake", simulator="daemon_fakes:FakeSimulator")
     d = Daemon(
-        cfg, camera=ScriptedCamera(), pressure=constant_pressure(), processor_factory=FakeProcessor
+        cfg, camera=camera, pressure=constant_pressure(), processor_factory=FakeProcessor
     ).start()
-    serve_until(d, stop)
+    serve_until(d, stop, a.duration)
 
 
 if __name__ == "__main__":

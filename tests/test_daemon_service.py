@@ -4,6 +4,8 @@ slow subscribers, late subscribers, a port in use, single-stage processing, drop
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import zmq
@@ -119,3 +121,33 @@ def test_huge_shutdown_timeout_is_refused_and_the_largest_stops_in_time():
     # timeout would hit this test's own timeout).
     d.stop()
     assert d.alive_threads() == []
+
+
+class SlowToBuildProcessor(FakeProcessor):
+    """A FakeProcessor whose construction (the estimator build) takes 0.6 s."""
+
+    def __init__(self, *args, **kwargs):
+        threading.Event().wait(0.6)
+        super().__init__(*args, **kwargs)
+
+
+def test_frames_replaced_before_the_reference_are_not_drops():
+    # 100 Hz camera while the processor builds for 0.6 s: ~60 frames replaced in the slot
+    # before the estimator exists. They are not "dropped": only frames it could have processed.
+    cam = ScriptedCamera(rate_hz=100.0)
+    d = Daemon(
+        fake_config(),
+        camera=cam,
+        pressure=constant_pressure(),
+        processor_factory=SlowToBuildProcessor,
+    ).start()
+    try:
+        assert d.frames_dropped == 0
+        assert d.wait_ready(20.0)
+        assert d._drops_before_reference >= 30  # the frames were replaced
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            assert len(list(sub.frames(count=10, timeout_s=5))) == 10
+        assert d.frames_dropped < 15
+        assert status_of(d).frames_dropped < 15
+    finally:
+        d.stop()

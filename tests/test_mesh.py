@@ -165,3 +165,41 @@ def test_lumped_areas_sum_to_surface_area():
     v, t = mesh.vertices, mesh.triangles
     total = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
     np.testing.assert_allclose(lumped_areas(v, t).sum(), total.sum())
+
+
+def test_generated_mesh_is_cached_on_disk_and_equal_to_a_fresh_one(tmp_path, monkeypatch):
+    from bubble_rt import mesh as mesh_mod
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path))
+    mesh_mod._generate.cache_clear()
+    try:
+        first = Mesh.generate(60)  # generated, then stored
+        (entry,) = tmp_path.glob("mesh-*.npz")
+        mesh_mod._generate.cache_clear()
+        cached = Mesh.generate(60)  # read back from the file
+        assert cached is not first
+        assert np.array_equal(cached.vertices, first.vertices)
+        assert np.array_equal(cached.triangles, first.triangles)
+        assert np.array_equal(cached.boundary, first.boundary)
+        # Another geometry is another entry.
+        Mesh.generate(60, MeshGeometry(dome_height=0.02))
+        assert len(list(tmp_path.glob("mesh-*.npz"))) == 2
+    finally:
+        mesh_mod._generate.cache_clear()
+
+
+def test_damaged_mesh_cache_entry_is_generated_again(tmp_path, monkeypatch):
+    from bubble_rt import mesh as mesh_mod
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path))
+    mesh_mod._generate.cache_clear()
+    try:
+        first = Mesh.generate(60)
+        (entry,) = tmp_path.glob("mesh-*.npz")
+        entry.write_bytes(b"not an npz file")
+        mesh_mod._generate.cache_clear()
+        again = Mesh.generate(60)
+        assert again is not first and np.array_equal(again.vertices, first.vertices)
+        assert np.load(entry)["vertices"].shape == (60, 3)  # rewritten
+    finally:
+        mesh_mod._generate.cache_clear()

@@ -27,7 +27,7 @@ def _serialized_descriptor(generated: Path) -> bytes:
     raise AssertionError(f"no AddSerializedFile in {generated}")
 
 
-@pytest.mark.parametrize("stem", ["bubble_rt", "foxglove_raw_image"])
+@pytest.mark.parametrize("stem", ["bubble_rt", "foxglove_raw_image", "foxglove_compressed_image"])
 def test_generated_code_is_up_to_date(stem, tmp_path):
     import importlib
 

@@ -445,32 +445,10 @@ def test_camera_factory_realsense():
     assert isinstance(cam, RealSenseCamera) and cam.serial == "42"
 
 
-class FakeSimulator:
-    """The bubble_rt.sim.Simulator interface the sim source uses."""
-
-    renders = 0
-
-    def __init__(self, scene, progress=None):
-        self.scene = types.SimpleNamespace(frames=4, rates=types.SimpleNamespace(camera_hz=30.0))
-        self.camera = Camera.d405()
-
-    def frames(self):
-        for i in range(4):
-            FakeSimulator.renders += 1
-            yield make_frame(i)
-
-    def reference_frames(self, n):
-        return [make_frame(-n + k) for k in range(n)]
-
-
-def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
+def test_sim_source_loops_with_increasing_indices_and_prerenders():
     from bubble_rt.daemon.sources import SimCamera
 
-    monkeypatch.setitem(
-        sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=FakeSimulator)
-    )
-    FakeSimulator.renders = 0
-    cam = SimCamera("demo", lossless=True)
+    cam = SimCamera("demo", lossless=True, simulator="daemon_fakes:FakeSimulator")
     assert [f.index for f in cam.reference_frames(2)] == [-2, -1]
     cam.start()
     try:
@@ -478,7 +456,10 @@ def test_sim_source_loops_with_increasing_indices_and_prerenders(monkeypatch):
     finally:
         cam.stop()
     assert [f.index for f in got] == list(range(10))
-    assert FakeSimulator.renders == 4  # later passes replay the first one
+    # Rendered in the producer process: 2 reference frames and one pass of 4; later passes
+    # replay the first one.
+    assert cam.producer.frames_received == 2 + 4
+    assert not cam.producer.alive  # stop() ended the process
 
 
 def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):

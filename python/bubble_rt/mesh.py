@@ -366,6 +366,39 @@ def _ellipse_perimeter(a: float, b: float) -> float:
 
 @functools.lru_cache(maxsize=16)
 def _generate(n_nodes: int, g: MeshGeometry) -> Mesh:
+    """The generated mesh, from the on-disk cache when this module's code, the numpy and scipy
+    versions (qhull's triangulation), ``n_nodes`` and ``g`` are unchanged (generating takes
+    about a second, the largest part of the daemon's start-up), else generated and stored."""
+    from bubble_rt import _diskcache
+
+    key = _diskcache.source_key(
+        "mesh", n_nodes, g, np.__version__, _scipy_version(), files=(Path(__file__),)
+    )
+    path = _diskcache.cache_dir() / f"mesh-{key}.npz"
+    cached = _diskcache.load(path)
+    if cached is not None:
+        try:
+            return Mesh(cached["vertices"], cached["triangles"], cached["boundary"])
+        except (KeyError, MeshError):
+            pass  # a damaged entry: generate again (and overwrite it)
+    mesh = _generate_now(n_nodes, g)
+    try:
+        _diskcache.store(
+            path,
+            {"vertices": mesh.vertices, "triangles": mesh.triangles, "boundary": mesh.boundary},
+        )
+    except OSError:
+        pass  # a read-only home: the mesh is still right, only not cached
+    return mesh
+
+
+def _scipy_version() -> str:
+    import scipy
+
+    return str(scipy.__version__)
+
+
+def _generate_now(n_nodes: int, g: MeshGeometry) -> Mesh:
     a, b = g.semi_axis_x, g.semi_axis_y
     # Area-element weights make node density uniform on the dome, not on the footprint.
     step = min(a, b) / 150.0

@@ -115,72 +115,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+class _Stop(Exception):
+    """Ends the run with an exit status and a message for stderr."""
+
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
 def run(args: argparse.Namespace) -> int:
-    import json
     import sys
-    from pathlib import Path
 
-    import numpy as np
-    from tqdm import tqdm
+    try:
+        _run(args)
+    except _Stop as stop:
+        print(f"bubble-rt estimate: {stop}", file=sys.stderr)
+        return stop.code
+    return 0
 
-    from bubble_rt.config import ConfigError, DaemonConfig
-    from bubble_rt.estimation.pipeline import Pipeline, capture_settings
-    from bubble_rt.frames import FrameError, fault_of
-    from bubble_rt.io.recordings import open_recording
+
+def _run(args: argparse.Namespace) -> None:
+    import sys
+
+    from bubble_rt.frames import FrameError
     from bubble_rt.mesh import PRESET_NODES
 
-    if not args.json and not args.bag:
-        print("bubble-rt estimate: give --json OUT and/or --bag OUT", file=sys.stderr)
-        return 2
-    from bubble_rt._validate import PathError, output_file
-
-    try:  # outputs refused before any work (a FIFO would block the final write)
-        for option, out_path in (("--json", args.json), ("--save-mesh", args.save_mesh)):
-            if out_path:
-                output_file(option, out_path)
-    except PathError as exc:
-        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
-        return 2
-    if args.bag and Path(args.bag).exists():
-        print(
-            f"bubble-rt estimate: --bag: {args.bag} exists (a new folder is written)",
-            file=sys.stderr,
-        )
-        return 2
-    try:
-        cfg = DaemonConfig.load(args.config, "--config") if args.config else DaemonConfig()
-        cfg = cfg.with_overrides(
-            **{"estimator.mesh": args.mesh, "flow.method": args.flow, "flow.scale": args.flow_scale}
-        )
-    except ConfigError as exc:
-        print(f"bubble-rt estimate: invalid configuration: {exc}", file=sys.stderr)
-        return 2
-    if cfg.estimator.mesh not in PRESET_NODES:  # a mesh file: refused now, with its key
-        from bubble_rt.mesh import Mesh
-
-        try:
-            Mesh.load(cfg.estimator.mesh)
-        except (ValueError, OSError) as exc:  # MeshError, missing file
-            key = "--mesh" if args.mesh else "estimator.mesh"
-            print(f"bubble-rt estimate: {key}: {exc}", file=sys.stderr)
-            return 2
-    try:
-        rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
-    except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
-        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
-        return 2
-    n = len(rec)
-    # (this project's MCAP recordings state no layout: the sensor profile is the default's)
-    layout = getattr(rec, "layout", "mcap")
-    if n == 0:  # e.g. an MCAP file cut after its reference frames
-        print(f"bubble-rt estimate: {args.recording}: no frame in the recording", file=sys.stderr)
-        return EXIT_NO_FRAME
-    try:
-        ref_idx = parse_frames(args.reference_frames, n)
-        todo = parse_frames(args.frames, n) if args.frames else list(range(n))
-    except ValueError as exc:
-        print(f"bubble-rt estimate: {exc}", file=sys.stderr)
-        return 2
+    _check_outputs(args)
+    cfg = _configuration(args)
+    rec, ref_idx, todo, layout = _open(args)
     tally = FaultTally()
     for fault in getattr(rec, "reading_faults", []):  # bag pressure readings skipped
         tally.add(fault)
@@ -189,39 +151,122 @@ def run(args: argparse.Namespace) -> int:
             print(f"bubble-rt estimate: {note}", file=sys.stderr)
     ref_frames = [f for _, f in _pick(rec, ref_idx, tally)]
     if not ref_frames:
-        print(
-            f"bubble-rt estimate: no usable reference frame ({tally.summary()}): "
+        raise _Stop(
+            EXIT_NO_FRAME,
+            f"no usable reference frame ({tally.summary()}): "
             + "; ".join(str(f) for f in tally.faults[-len(ref_idx) :]),
-            file=sys.stderr,
         )
-        return EXIT_NO_FRAME
+    from bubble_rt.estimation.pipeline import Pipeline, capture_settings
+
     settings = capture_settings(cfg, realtime=False, layout=layout)
-    preset = cfg.estimator.mesh in PRESET_NODES
-    settings["fit"] = settings["fit"] and preset
+    settings["fit"] = settings["fit"] and cfg.estimator.mesh in PRESET_NODES
     try:
-        estimator = Pipeline.capture(ref_frames, rec.camera, **settings)
+        pipeline = Pipeline.capture(ref_frames, rec.camera, **settings)
     except FrameError as exc:  # plausibility.ReferenceRefused; a mesh that cannot be fitted
-        print(
-            f"bubble-rt estimate: the reference frames are not usable: {exc} (camera pose from "
+        raise _Stop(
+            EXIT_NO_FRAME,
+            f"the reference frames are not usable: {exc} (camera pose from "
             f"{getattr(rec, 'placement', layout)})",
-            file=sys.stderr,
+        ) from None
+    results = _estimate(args, rec, pipeline, todo, tally)
+    if tally.total:
+        print(f"bubble-rt estimate: {tally.summary()}", file=sys.stderr)
+    if not results:
+        raise _Stop(EXIT_NO_FRAME, f"no usable frame to estimate ({tally.summary()})")
+    if args.save_mesh:
+        pipeline.mesh.save(args.save_mesh)
+    frames_out = _write_frames(args, pipeline.mesh, rec.camera, results)
+    if args.json:
+        import json
+        from pathlib import Path
+
+        out = _summary(args, cfg, rec, layout, pipeline, settings, ref_idx)
+        out.update(
+            frames=frames_out,
+            skipped=[f.as_dict() for f in tally.faults],
+            skipped_counts=dict(tally.counts),
         )
-        return EXIT_NO_FRAME
-    mesh, reference = estimator.mesh, estimator.reference
-    mesh_info: dict[str, Any] = (
-        {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
-        if preset
-        else {"file": str(cfg.estimator.mesh), "fitted": False}
-    )
-    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
-    R = rec.camera.pose_matrix[:3, :3]  # camera -> mesh rotation
+        Path(args.json).write_text(json.dumps(out, indent=1))
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Outputs refused before any work (a FIFO would block the final write)."""
+    from pathlib import Path
+
+    from bubble_rt._validate import PathError, output_file
+
+    if not args.json and not args.bag:
+        raise _Stop(2, "give --json OUT and/or --bag OUT")
+    try:
+        for option, out_path in (("--json", args.json), ("--save-mesh", args.save_mesh)):
+            if out_path:
+                output_file(option, out_path)
+    except PathError as exc:
+        raise _Stop(2, str(exc)) from None
+    if args.bag and Path(args.bag).exists():
+        raise _Stop(2, f"--bag: {args.bag} exists (a new folder is written)")
+
+
+def _configuration(args: argparse.Namespace) -> Any:
+    """The configuration with the command line's overrides; a mesh file is loaded now, so
+    that a bad one is refused with its key before the recording is read."""
+    from bubble_rt.config import ConfigError, DaemonConfig
+    from bubble_rt.mesh import PRESET_NODES, Mesh
+
+    try:
+        cfg = DaemonConfig.load(args.config, "--config") if args.config else DaemonConfig()
+        cfg = cfg.with_overrides(
+            **{"estimator.mesh": args.mesh, "flow.method": args.flow, "flow.scale": args.flow_scale}
+        )
+    except ConfigError as exc:
+        raise _Stop(2, f"invalid configuration: {exc}") from None
+    if cfg.estimator.mesh not in PRESET_NODES:
+        try:
+            Mesh.load(cfg.estimator.mesh)
+        except (ValueError, OSError) as exc:  # MeshError, missing file
+            key = "--mesh" if args.mesh else "estimator.mesh"
+            raise _Stop(2, f"{key}: {exc}") from None
+    return cfg
+
+
+def _open(args: argparse.Namespace) -> tuple[Any, list[int], list[int], str]:
+    """The recording, the reference and estimated frame positions, and its layout."""
+    from bubble_rt.io.recordings import open_recording
+
+    try:
+        rec = open_recording(args.recording, topics=args.topics, depth_unit=args.depth_unit)
+    except (ValueError, FileNotFoundError) as exc:  # FrameError, BagTopicError
+        raise _Stop(2, str(exc)) from None
+    n = len(rec)
+    if n == 0:  # e.g. an MCAP file cut after its reference frames
+        raise _Stop(EXIT_NO_FRAME, f"{args.recording}: no frame in the recording")
+    try:
+        ref_idx = parse_frames(args.reference_frames, n)
+        todo = parse_frames(args.frames, n) if args.frames else list(range(n))
+    except ValueError as exc:
+        raise _Stop(2, str(exc)) from None
+    # (this project's MCAP recordings state no layout: the sensor profile is the default's)
+    return rec, ref_idx, todo, getattr(rec, "layout", "mcap")
+
+
+def _estimate(
+    args: argparse.Namespace, rec: Any, pipeline: Any, todo: list[int], tally: FaultTally
+) -> list[tuple[Frame, Any]]:
+    """(frame, Estimate) of every frame to estimate that could be read and estimated; the
+    others go to ``tally``."""
+    from pathlib import Path
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from bubble_rt.frames import FrameError, fault_of
 
     results: list[tuple[Frame, Any]] = []
     bar = tqdm(total=len(todo), desc="estimate", unit="frame", disable=args.no_progress)
     for pos, frame in _pick(rec, todo, tally):
         bar.update(1)
         try:
-            e = estimator.process(frame)
+            e = pipeline.process(frame)
             if not np.all(np.isfinite(np.asarray(e.net_force, dtype=np.float64))):
                 raise FrameError("the estimate is not finite")
         except Exception as exc:  # one frame the estimator cannot take ends that frame only
@@ -229,71 +274,104 @@ def run(args: argparse.Namespace) -> int:
             continue
         results.append((frame, e))
     bar.close()
-    if tally.total:
-        print(f"bubble-rt estimate: {tally.summary()}", file=sys.stderr)
-    if not results:
-        print(
-            f"bubble-rt estimate: no usable frame to estimate ({tally.summary()})", file=sys.stderr
-        )
-        return EXIT_NO_FRAME
-    if args.save_mesh:
-        mesh.save(args.save_mesh)
+    return results
+
+
+def _write_frames(
+    args: argparse.Namespace, mesh: Any, camera: Any, results: list[tuple[Frame, Any]]
+) -> list[dict[str, Any]]:
+    """The frames' JSON records; with ``--bag``, the same frames into the bag."""
+    import numpy as np
+
+    from bubble_rt.wrench import PatchFinder
+
     bag = None
     if args.bag:
         from bubble_rt.io.bag_writer import BagWriter
 
         bag = BagWriter(args.bag)
-    from bubble_rt.wrench import PatchFinder
-
     finder = PatchFinder(mesh)
+    R = camera.pose_matrix[:3, :3]  # camera -> mesh rotation
     frames_out = []
-    for frame, e in results:
-        f_mesh = np.asarray(e.net_force, dtype=np.float64)
-        tau_mesh = finder.net_torque(e.node_forces)
-        patches = finder.patches(
-            e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
-        )
+    try:
+        for frame, e in results:
+            tau_mesh = finder.net_torque(e.node_forces)
+            if bag is not None:
+                bag.write(
+                    frame.t,
+                    np.asarray(e.net_force, dtype=np.float64),
+                    np.asarray(mesh.vertices) + np.nan_to_num(np.asarray(e.displacements)),
+                    e.node_forces,
+                    e.normal_pressure,
+                    e.contact,
+                    net_torque=tau_mesh,
+                )
+            frames_out.append(_frame_record(frame, e, finder, R, tau_mesh))
+    finally:
         if bag is not None:
-            bag.write(
-                frame.t,
-                f_mesh,
-                np.asarray(mesh.vertices) + np.nan_to_num(np.asarray(e.displacements)),
-                e.node_forces,
-                e.normal_pressure,
-                e.contact,
-                net_torque=tau_mesh,
-            )
-        frames_out.append(
+            bag.close()
+    return frames_out
+
+
+def _frame_record(frame: Frame, e: Any, finder: Any, R: Any, tau_mesh: Any) -> dict[str, Any]:
+    """One frame's JSON record (see the module docstring)."""
+    import numpy as np
+
+    f_mesh = np.asarray(e.net_force, dtype=np.float64)
+    patches = finder.patches(
+        e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
+    )
+    return {
+        "index": int(frame.index),
+        "t": float(frame.t),
+        "net_force": (R.T @ f_mesh).tolist(),
+        "net_force_mesh": f_mesh.tolist(),
+        "contact_nodes": int(np.count_nonzero(e.contact)),
+        "valid_node_fraction": float(e.valid_node_fraction),
+        "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
+        "degraded_reasons": list(e.degraded_reasons),
+        "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
+        "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
+        "solver_status": getattr(e.info, "status", None),
+        "net_torque_mesh": tau_mesh.tolist(),
+        "patches": [
             {
-                "index": int(frame.index),
-                "t": float(frame.t),
-                "net_force": (R.T @ f_mesh).tolist(),
-                "net_force_mesh": f_mesh.tolist(),
-                "contact_nodes": int(np.count_nonzero(e.contact)),
-                "valid_node_fraction": float(e.valid_node_fraction),
-                "degraded": bool(e.degraded_reasons),  # docs/daemon.md, "Degraded frames"
-                "degraded_reasons": list(e.degraded_reasons),
-                "timings_ms": {k: float(v) for k, v in e.timings_ms.items()},
-                "wrench": None if frame.wrench is None else np.asarray(frame.wrench).tolist(),
-                "solver_status": getattr(e.info, "status", None),
-                "net_torque_mesh": tau_mesh.tolist(),
-                "patches": [
-                    {
-                        "centroid": p.centroid.tolist(),
-                        "pressure_centroid": p.pressure_centroid.tolist(),
-                        "area": p.area,
-                        "force": p.force.tolist(),
-                        "normal": p.normal.tolist(),
-                        "peak_pressure": p.peak_pressure,
-                        "torque": p.torque.tolist(),
-                        "nodes": p.nodes.tolist(),
-                    }
-                    for p in patches
-                ],
+                "centroid": p.centroid.tolist(),
+                "pressure_centroid": p.pressure_centroid.tolist(),
+                "area": p.area,
+                "force": p.force.tolist(),
+                "normal": p.normal.tolist(),
+                "peak_pressure": p.peak_pressure,
+                "torque": p.torque.tolist(),
+                "nodes": p.nodes.tolist(),
             }
-        )
-    cam = rec.camera
-    out = {
+            for p in patches
+        ],
+    }
+
+
+def _summary(
+    args: argparse.Namespace,
+    cfg: Any,
+    rec: Any,
+    layout: str,
+    pipeline: Any,
+    settings: dict[str, Any],
+    ref_idx: list[int],
+) -> dict[str, Any]:
+    """The JSON's header: recording, camera, mesh, flow, reference, topics."""
+    from pathlib import Path
+
+    from bubble_rt.mesh import PRESET_NODES
+
+    mesh, cam = pipeline.mesh, rec.camera
+    mesh_info: dict[str, Any] = (
+        {"preset": cfg.estimator.mesh, "fitted": settings["fit"]}
+        if cfg.estimator.mesh in PRESET_NODES
+        else {"file": str(cfg.estimator.mesh), "fitted": False}
+    )
+    mesh_info.update(nodes=mesh.n_nodes, min_angle_deg=mesh.min_angle_deg())
+    return {
         "recording": str(Path(args.recording).resolve()),
         "layout": layout,
         "camera": {
@@ -308,19 +386,11 @@ def run(args: argparse.Namespace) -> int:
         "mesh": mesh_info,
         "flow": {"method": settings["flow"].method, "scale": settings["flow"].scale},
         "reference_frames": ref_idx,
-        "reference_pressure_pa": reference.pressure_pa,
+        "reference_pressure_pa": pipeline.reference.pressure_pa,
         "ambient_pa": settings["config"].ambient_pa,
         "topics": getattr(rec, "topics", None),
         "lost": getattr(rec, "lost", ""),
-        "frames": frames_out,
-        "skipped": [f.as_dict() for f in tally.faults],
-        "skipped_counts": dict(tally.counts),
     }
-    if bag is not None:
-        bag.close()
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1))
-    return 0
 
 
 def _pick(rec: Any, positions: list[int], tally: FaultTally) -> Iterator[tuple[int, Frame]]:

@@ -6,6 +6,7 @@ import argparse
 import os
 import sys
 from dataclasses import replace
+from typing import Any
 
 HELP = "evaluate force/contact accuracy on simulated trajectories (or a real recording)"
 
@@ -64,20 +65,30 @@ def run(args: argparse.Namespace) -> int:
         return 2
     estimators = tuple(e.strip() for e in args.estimators.split(",") if e.strip())
     if args.recording:
-        res = ev.evaluate_recording(
-            args.recording,
-            overrides=overrides,
-            estimators=estimators,
-            mesh=args.mesh,
-            n_reference=args.reference_frames,
-            force_threshold=args.force_threshold,
-            bag_options={"topics": args.topics, "depth_unit": args.depth_unit},
-        )
-        print(ev.recording_table(res))
-        if args.json:
-            ev.write_json(args.json, res)
-        return 0
+        _run_recording(args, ev, overrides, estimators)
+    else:
+        _run_simulated(args, ev, overrides, estimators)
+    return 0
 
+
+def _run_recording(args: argparse.Namespace, ev: Any, overrides: dict, estimators: tuple) -> None:
+    """``--recording``: net-force magnitude and contact detection against its wrench."""
+    res = ev.evaluate_recording(
+        args.recording,
+        overrides=overrides,
+        estimators=estimators,
+        mesh=args.mesh,
+        n_reference=args.reference_frames,
+        force_threshold=args.force_threshold,
+        bag_options={"topics": args.topics, "depth_unit": args.depth_unit},
+    )
+    print(ev.recording_table(res))
+    if args.json:
+        ev.write_json(args.json, res)
+
+
+def _run_simulated(args: argparse.Namespace, ev: Any, overrides: dict, estimators: tuple) -> None:
+    """Simulated trajectories against the simulator's truth: tables, figures, JSON."""
     if args.full:
         traj, frames = 34, 100
     elif args.quick:
@@ -129,4 +140,3 @@ def run(args: argparse.Namespace) -> int:
         }
         payload["frames"] = [ev.records_to_json(r.records) for r in results]
         ev.write_json(args.json, payload)
-    return 0

@@ -13,6 +13,8 @@ HELP = "run the force-estimation daemon and publish force frames over ZeroMQ"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from bubble_rt.io.image_codec import COLOR_CODECS
+
     parser.add_argument("--config", metavar="FILE", help="TOML configuration (see config dump)")
     parser.add_argument(
         "--camera", metavar="SOURCE", help="sim[:scene] | replay:<file> | realsense[:serial]"
@@ -29,6 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", metavar="FILE", help="record inputs and outputs from start")
     parser.add_argument(
         "--overwrite", action="store_true", help="with --record: replace an existing file"
+    )
+    parser.add_argument(
+        "--record-color",
+        choices=COLOR_CODECS,
+        help="colour images in recordings: jpeg (lossy, default) or png (lossless)",
     )
     parser.add_argument(
         "--echo", action="store_true", help="also print received frames (in-process subscriber)"
@@ -66,6 +73,7 @@ def build_config(args: argparse.Namespace):
             "camera.pace": args.pace,
             "recording.path": args.record,
             "recording.overwrite": True if args.overwrite else None,
+            "recording.color": getattr(args, "record_color", None),
         }
     )
 

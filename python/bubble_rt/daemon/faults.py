@@ -65,6 +65,8 @@ def start_recorder(
         inputs=rc.inputs,
         chunk_size=rc.chunk_size,
         compression=rc.compression,
+        color=rc.color,
+        jpeg_quality=rc.jpeg_quality,
         queue_size=rc.queue,
         overwrite=overwrite,
     )

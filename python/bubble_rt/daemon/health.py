@@ -38,15 +38,25 @@ class Daemon(Protocol):
     _latencies: deque[float]
     _publish_times: deque[float]
     _recording_fault_counted: bool
+    _drops_before_reference: int
 
     def _error(self, kind: str, exc: BaseException | str) -> None: ...
 
 
-def frames_dropped(d: Daemon) -> int:
+def raw_drops(d: Daemon) -> int:
     """Camera frames replaced before stage one took them, plus stage-one results replaced
-    before stage two took them."""
+    before stage two took them, since the daemon started."""
     cam_drops = d._camera_src.output.dropped if d._camera_src is not None else 0
     return cam_drops + d._mid.dropped
+
+
+def frames_dropped(d: Daemon) -> int:
+    """Frames the estimator could have processed but never did because a newer one arrived
+    first: ``raw_drops`` after the first reference was installed (the frames replaced while
+    the reference was captured and the estimator built are not drops)."""
+    if d.processor is None:
+        return 0
+    return raw_drops(d) - d._drops_before_reference
 
 
 def state(d: Daemon, now: float | None = None) -> tuple[int, str]:

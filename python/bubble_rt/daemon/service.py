@@ -122,6 +122,8 @@ class Daemon:
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
         self._recording_fault_counted = False
+        #: ``health.raw_drops`` when the first reference was installed (not counted as drops).
+        self._drops_before_reference = 0
         #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
         #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
@@ -425,6 +427,7 @@ class Daemon:
                     mesh.boundary,
                     self._patches.areas,
                 )
+                self._drops_before_reference = health.raw_drops(self)
                 self.processor = proc
                 if self.recorder is not None:
                     self.recorder.write_message(TOPIC_MESH, self.mesh_msg)

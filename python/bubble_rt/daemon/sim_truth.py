@@ -18,12 +18,16 @@ from bubble_rt.io import protocol
 
 def attach_sim_truth(msg: Any, frame: Any, mesh: Any) -> bool:
     """Set ``msg.sim_truth`` from ``frame.truth`` on ``mesh``'s nodes; False (nothing set)
-    when the frame has no truth or the simulator flags it as unreliable (not converged)."""
+    when the frame has no truth, the simulator flags it as unreliable (not converged) or its
+    contact on ``mesh`` is not known yet (``contact_mask`` returned None)."""
     truth = getattr(frame, "truth", None)
     if truth is None or getattr(truth, "net_force", None) is None:
         return False
     if not getattr(truth, "converged", True):
         return False
-    contact = np.asarray(truth.contact_mask(mesh), dtype=bool)
+    mask = truth.contact_mask(mesh)
+    if mask is None:  # not derived yet (the sim source derives it in its own process)
+        return False
+    contact = np.asarray(mask, dtype=bool)
     protocol.set_sim_truth(msg, np.asarray(truth.net_force, dtype=np.float64), contact)
     return True

@@ -374,60 +374,99 @@ class IterableCamera(CameraSource):
         return None if self.loop else False
 
 
+class SimCameraSource(IterableCamera):
+    """An :class:`IterableCamera` whose frames a :class:`~bubble_rt.daemon.sim_producer.
+    SimProducer` renders in its own process; ``stop`` ends that process too."""
+
+    producer: Any
+
+    #: One rendered pass read from the disk cache (then nothing is rendered), or None.
+    cached_pass: list[Any] | None = None
+
+    def prepare(self) -> None:
+        """Start the renderer process now, so it loads while the daemon sets up (with a cached
+        pass it renders nothing: it loads the physics, then derives the true contact)."""
+        self.producer.start()
+        if self.cached_pass is not None:  # the physics is cached too: load it meanwhile
+            threading.Thread(
+                target=self.producer.preload_truth, name="sim-truth-preload", daemon=True
+            ).start()
+
+    def stop(self, timeout: float = 1.0) -> None:
+        super().stop(timeout)
+        self.producer.stop(timeout)
+
+
 def SimCamera(
     scene: str = "demo",
     rate_hz: float | None = None,
     loop: bool = True,
     lossless: bool = False,
     prerender: bool = True,
-) -> IterableCamera:
+    simulator: str | None = None,
+) -> SimCameraSource:
     """The simulator (``bubble_rt.sim``) on a scene, looped, paced at the scene's camera rate.
 
-    Frame indices keep counting across loops (``index = pass * scene.frames + i``), so frame
-    ``k`` shows scene frame ``k % scene.frames``. With ``prerender`` the first pass is kept in
-    memory and later passes replay it, leaving the CPU to the estimator (the noise then
-    repeats every loop).
+    The frames are rendered in a separate process (:mod:`bubble_rt.daemon.sim_producer`), so
+    the simulated camera takes no time from the estimation threads, like a real camera; they
+    carry the simulator's ground truth (``Frame.truth``). Frame indices keep counting across
+    loops (``index = pass * scene.frames + i``), so frame ``k`` shows scene frame
+    ``k % scene.frames``. With ``prerender`` the first pass is kept in memory and later passes
+    replay it (the renderer process is then idle); it is also stored in the disk cache
+    (``sim_producer.pass_cache_path``, keyed by the scene and the simulator's code), and later
+    runs replay it from there from their first frame, rendering nothing. ``simulator``: the simulator class as
+    ``module:attribute`` (default ``bubble_rt.sim:Simulator``; tests name a fake).
     """
-    from bubble_rt.sim import Simulator
+    from bubble_rt.daemon import sim_producer as sp
 
-    bar: list[Callable[[int, int], None]] = []
-
-    def progress(done: int, total: int) -> None:
-        if not bar:  # the physics is being computed (not cached): one bar, and a log line
-            from bubble_rt.sim.simulator import progress_bar
-
-            log.info("simulating the physics of scene %r (first run only, cached)", scene)
-            bar.append(progress_bar(f"physics of scene {scene!r}"))
-        bar[0](done, total)
-
+    path = simulator or sp.DEFAULT_SIMULATOR
     try:
-        sim = Simulator(scene, progress=progress)
+        sim = sp.load_simulator_class(path)(scene)  # the scene and camera; no physics yet
     except Exception as exc:
         raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
     n_frames = int(sim.scene.frames)
+    producer = sp.SimProducer(
+        scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
+    )
+    # With prerender, a pass rendered by an earlier run is read from the disk cache.
+    pass_path = sp.pass_cache_path(sim) if prerender else None
+    stored = None if pass_path is None else sp.load_pass(pass_path)
     cache: list[Frame] = []
     state = {"pass": 0, "complete": False}
+    src: SimCameraSource
 
     def frames() -> Iterator[Frame]:
         k = state["pass"]
         state["pass"] += 1
         offset = k * n_frames
+        if stored is not None:
+            for fields, arrays in stored:
+                f = producer.frame_of(fields, arrays)
+                yield replace(f, index=f.index + offset)
+            return
         if state["complete"]:
             for f in cache:
                 yield replace(f, index=f.index + offset)
             return
         cache.clear()
-        for f in sim.frames():
+        for f in producer.frames(src._stop):
             if prerender:
                 cache.append(f)
             yield replace(f, index=f.index + offset)
         state["complete"] = prerender
+        if prerender and pass_path is not None:  # the next runs read it from disk
+            threading.Thread(
+                target=sp.store_pass,
+                args=(pass_path, list(cache)),
+                name="sim-pass-cache",
+                daemon=True,
+            ).start()
 
     def reference(n: int) -> list[Frame] | None:
-        return list(sim.reference_frames(n))
+        return producer.reference_frames(n, src._stop)
 
     hz = rate_hz or float(sim.scene.rates.camera_hz)
-    src = IterableCamera(
+    src = SimCameraSource(
         frames,
         sim.camera,
         rate_hz=None if lossless else hz,
@@ -436,6 +475,10 @@ def SimCamera(
         reference=reference,
         keep_index=True,
     )
+    src.producer = producer
+    src.cached_pass = stored
+    # Paced by the estimator (every frame processed): a frame waits for its true contact.
+    producer.wait_for_truth = lossless
     src.name = f"sim:{scene}"
     src.stats.name = src.name
     return src

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from bubble_rt.eval.metrics import (
     LIGHT_TOUCH_RANGE_N,
@@ -144,112 +145,133 @@ def save_figures(
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    # Per indenter, the trajectory with fields and the largest true force (a heavy touch).
-    by_geom: dict[str, TrajectoryResult] = {}
+    for g, r in _heaviest_per_indenter(results).items():
+        written.append(_net_force_figure(r, estimators, out / f"net_force_{g}.png"))
+        if r.fields.get("frames"):
+            written.append(_contact_figure(r, estimators, out / f"contact_{g}.png"))
+    return written
+
+
+def _heaviest_per_indenter(results: Sequence[TrajectoryResult]) -> dict[str, TrajectoryResult]:
+    """Per indenter, the trajectory with fields and the largest true force (a heavy touch)."""
 
     def peak(r: TrajectoryResult) -> float:
         return max((float(np.linalg.norm(x.f_gt)) for x in r.records), default=0.0)
 
+    by_geom: dict[str, TrajectoryResult] = {}
     for r in results:
         cur = by_geom.get(r.task.geometry)
         has = bool(r.fields.get("frames"))
         if cur is None or (has, peak(r)) > (bool(cur.fields.get("frames")), peak(cur)):
             by_geom[r.task.geometry] = r
-    for g, r in by_geom.items():
-        # net force vs ground truth over the trajectory
-        fig, axes = plt.subplots(1, 4, figsize=(14, 3.2), sharex=True)
-        for name in estimators:
-            recs = sorted((x for x in r.records if x.estimator == name), key=lambda x: x.frame)
-            if not recs:
-                continue
-            fe = np.array([x.f_est for x in recs])
-            fg = np.array([x.f_gt for x in recs])
-            idx = [x.frame for x in recs]
-            for k, lab in enumerate("xyz"):
-                axes[k].plot(idx, fe[:, k], label=name)
-                axes[k].set_title(f"f_{lab} (N)")
-            axes[3].plot(idx, np.linalg.norm(fe, axis=1), label=name)
-            if name == estimators[0]:
-                for k in range(3):
-                    axes[k].plot(idx, fg[:, k], "k--", label="truth")
-                axes[3].plot(idx, np.linalg.norm(fg, axis=1), "k--", label="truth")
-        axes[3].set_title("|f| (N)")
-        axes[3].legend(fontsize=7)
-        for ax in axes:
-            ax.set_xlabel("frame")
-        fig.suptitle(f"{g}: net force vs ground truth (trajectory {r.task.trajectory})")
-        fig.tight_layout()
-        p = out / f"net_force_{g}.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        written.append(p)
+    return by_geom
 
-        frames = r.fields.get("frames", {})
-        if not frames:
+
+def _net_force_figure(r: TrajectoryResult, estimators: Sequence[str], path: Path) -> Path:
+    """Net force components and magnitude against the truth over the trajectory."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.2), sharex=True)
+    for name in estimators:
+        recs = sorted((x for x in r.records if x.estimator == name), key=lambda x: x.frame)
+        if not recs:
             continue
-        V = np.asarray(r.fields["vertices"])
-        i_best = max(frames, key=lambda i: int(next(iter(frames[i].values()))["gt_contact"].sum()))
-        per = frames[i_best]
-        names = [e for e in estimators if e in per]
-        T = np.asarray(r.fields["triangles"])
-        interior = np.ones(len(V), bool)
-        interior[np.asarray(r.fields.get("boundary", []), dtype=int)] = False
-        fig = plt.figure(figsize=(5.2 * len(names), 8.5))
-        for j, name in enumerate(names):
-            d = per[name]
-            est, gt = d["contact"], d["gt_contact"]
-            ax = fig.add_subplot(2, len(names), j + 1)
-            ax.scatter(V[:, 0] * 1e3, V[:, 1] * 1e3, s=4, c="0.85")
-            for mask, col, lab in (
-                (est & gt, "tab:green", "both"),
-                (est & ~gt, "tab:red", "estimate only"),
-                (~est & gt, "tab:blue", "truth only"),
-            ):
-                ax.scatter(V[mask, 0] * 1e3, V[mask, 1] * 1e3, s=14, c=col, label=lab)
-            ax.set_aspect("equal")
-            ax.set_title(f"{name}: contact, frame {i_best}, IoU {contact_iou(est, gt):.2f}")
-            ax.set_xlabel("x (mm)")
-            ax.set_ylabel("y (mm)")
-            ax.legend(fontsize=7, loc="upper right")
-            # Force field: arrows on the mesh (interior nodes; the rim carries the base's
-            # reaction), longest arrow drawn 15 mm long.
-            ax3 = fig.add_subplot(2, len(names), len(names) + j + 1, projection="3d")
-            F = np.asarray(d["node_forces"])
-            ax3.plot_trisurf(
-                V[:, 0] * 1e3, V[:, 1] * 1e3, V[:, 2] * 1e3, triangles=T, color="0.8", alpha=0.3
-            )
-            Fi = np.where(interior[:, None], F, 0.0)
-            fmax = float(np.linalg.norm(Fi, axis=1).max()) or 1.0
-            sc = 15.0 / fmax
-            ax3.quiver(
-                V[interior, 0] * 1e3,
-                V[interior, 1] * 1e3,
-                V[interior, 2] * 1e3,
-                Fi[interior, 0] * sc,
-                Fi[interior, 1] * sc,
-                Fi[interior, 2] * sc,
-                color=np.where(est[interior], "tab:red", "tab:gray"),
-                linewidth=0.8,
-                arrow_length_ratio=0.25,
-            )
-            ax3.set_title(f"{name}: node forces (max {fmax:.2f} N; red = contact)", fontsize=9)
-            ax3.set_xlabel("x (mm)")
-            ax3.set_ylabel("y (mm)")
-            ax3.set_zlabel("z (mm)")
-            ax3.view_init(elev=35, azim=-60)
-            ext = np.ptp(V, axis=0) * 1e3
-            ax3.set_box_aspect((ext[0], ext[1], ext[2] + 15.0))
-        fig.tight_layout()
-        p = out / f"contact_{g}.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        written.append(p)
-    return written
+        fe = np.array([x.f_est for x in recs])
+        fg = np.array([x.f_gt for x in recs])
+        idx = [x.frame for x in recs]
+        for k, lab in enumerate("xyz"):
+            axes[k].plot(idx, fe[:, k], label=name)
+            axes[k].set_title(f"f_{lab} (N)")
+        axes[3].plot(idx, np.linalg.norm(fe, axis=1), label=name)
+        if name == estimators[0]:
+            for k in range(3):
+                axes[k].plot(idx, fg[:, k], "k--", label="truth")
+            axes[3].plot(idx, np.linalg.norm(fg, axis=1), "k--", label="truth")
+    axes[3].set_title("|f| (N)")
+    axes[3].legend(fontsize=7)
+    for ax in axes:
+        ax.set_xlabel("frame")
+    fig.suptitle(f"{r.task.geometry}: net force vs ground truth (trajectory {r.task.trajectory})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _contact_figure(r: TrajectoryResult, estimators: Sequence[str], path: Path) -> Path:
+    """On the frame with the largest true contact: each estimator's contact against the
+    truth (top) and its node forces as arrows on the mesh (bottom)."""
+    import matplotlib.pyplot as plt
+
+    frames = r.fields["frames"]
+    V = np.asarray(r.fields["vertices"])
+    i_best = max(frames, key=lambda i: int(next(iter(frames[i].values()))["gt_contact"].sum()))
+    per = frames[i_best]
+    names = [e for e in estimators if e in per]
+    interior = np.ones(len(V), bool)
+    interior[np.asarray(r.fields.get("boundary", []), dtype=int)] = False
+    fig = plt.figure(figsize=(5.2 * len(names), 8.5))
+    for j, name in enumerate(names):
+        d = per[name]
+        ax = fig.add_subplot(2, len(names), j + 1)
+        _contact_panel(ax, V, d["contact"], d["gt_contact"], f"{name}: contact, frame {i_best}")
+        ax3 = fig.add_subplot(2, len(names), len(names) + j + 1, projection="3d")
+        _force_panel(ax3, V, np.asarray(r.fields["triangles"]), interior, d, name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _contact_panel(ax: Any, V: NDArray, est: NDArray, gt: NDArray, title: str) -> None:
+    ax.scatter(V[:, 0] * 1e3, V[:, 1] * 1e3, s=4, c="0.85")
+    for mask, col, lab in (
+        (est & gt, "tab:green", "both"),
+        (est & ~gt, "tab:red", "estimate only"),
+        (~est & gt, "tab:blue", "truth only"),
+    ):
+        ax.scatter(V[mask, 0] * 1e3, V[mask, 1] * 1e3, s=14, c=col, label=lab)
+    ax.set_aspect("equal")
+    ax.set_title(f"{title}, IoU {contact_iou(est, gt):.2f}")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.legend(fontsize=7, loc="upper right")
+
+
+def _force_panel(
+    ax3: Any, V: NDArray, T: NDArray, interior: NDArray, d: dict[str, Any], name: str
+) -> None:
+    """Force field: arrows on the mesh (interior nodes; the rim carries the base's reaction),
+    longest arrow drawn 15 mm long."""
+    F = np.asarray(d["node_forces"])
+    ax3.plot_trisurf(
+        V[:, 0] * 1e3, V[:, 1] * 1e3, V[:, 2] * 1e3, triangles=T, color="0.8", alpha=0.3
+    )
+    Fi = np.where(interior[:, None], F, 0.0)
+    fmax = float(np.linalg.norm(Fi, axis=1).max()) or 1.0
+    sc = 15.0 / fmax
+    ax3.quiver(
+        V[interior, 0] * 1e3,
+        V[interior, 1] * 1e3,
+        V[interior, 2] * 1e3,
+        Fi[interior, 0] * sc,
+        Fi[interior, 1] * sc,
+        Fi[interior, 2] * sc,
+        color=np.where(d["contact"][interior], "tab:red", "tab:gray"),
+        linewidth=0.8,
+        arrow_length_ratio=0.25,
+    )
+    ax3.set_title(f"{name}: node forces (max {fmax:.2f} N; red = contact)", fontsize=9)
+    ax3.set_xlabel("x (mm)")
+    ax3.set_ylabel("y (mm)")
+    ax3.set_zlabel("z (mm)")
+    ax3.view_init(elev=35, azim=-60)
+    ext = np.ptp(V, axis=0) * 1e3
+    ax3.set_box_aspect((ext[0], ext[1], ext[2] + 15.0))
 
 
 def recording_table(res: dict[str, Any]) -> str:

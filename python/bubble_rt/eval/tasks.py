@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from bubble_rt.eval.fanout import run_tasks
 from bubble_rt.eval.metrics import (
@@ -418,28 +419,36 @@ def evaluate_recording(
     fitted = fitted_mesh(str(mesh), Reference.capture(ref_frames), rec.camera)
     for name in estimators:
         est = build_estimator(name, fitted, traj, config)
-        mags, det, ms = [], [], []
-        for fr in scored:
-            t0 = time.perf_counter()
-            e = est.process(fr)
-            ms.append(1e3 * (time.perf_counter() - t0))
-            mags.append(float(np.linalg.norm(e.net_force)))
-            det.append(bool(np.asarray(e.contact).any()))
-        m = np.asarray(mags)
-        d = np.asarray(det)
-        err = np.abs(m - f_gt)
-        tp = int((d & touched).sum())
-        fp = int((d & ~touched).sum())
-        fn = int((~d & touched).sum())
-        out["estimators"][name] = {
-            "force_mag_err_n": float(err.mean()),
-            "force_mag_err_median_n": float(np.median(err)),
-            "force_mag_err_touched_n": float(err[touched].mean()) if touched.any() else None,
-            "accuracy": float((d == touched).mean()),
-            "precision": tp / (tp + fp) if tp + fp else None,
-            "recall": tp / (tp + fn) if tp + fn else None,
-            "false_contact_rate": float(d[~touched].mean()) if (~touched).any() else None,
-            "mean_force_n": float(m.mean()),
-            "time_ms": float(np.median(ms)),
-        }
+        out["estimators"][name] = _score_recording(est, scored, f_gt, touched)
     return out
+
+
+def _score_recording(
+    est: Any, scored: Sequence[Any], f_gt: NDArray[np.float64], touched: NDArray[np.bool_]
+) -> dict[str, Any]:
+    """One estimator on a recording's scored frames: net-force magnitude error against the
+    wrench (N), contact detection against ``touched``, median time per frame (ms)."""
+    mags, det, ms = [], [], []
+    for fr in scored:
+        t0 = time.perf_counter()
+        e = est.process(fr)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        mags.append(float(np.linalg.norm(e.net_force)))
+        det.append(bool(np.asarray(e.contact).any()))
+    m = np.asarray(mags)
+    d = np.asarray(det)
+    err = np.abs(m - f_gt)
+    tp = int((d & touched).sum())
+    fp = int((d & ~touched).sum())
+    fn = int((~d & touched).sum())
+    return {
+        "force_mag_err_n": float(err.mean()),
+        "force_mag_err_median_n": float(np.median(err)),
+        "force_mag_err_touched_n": float(err[touched].mean()) if touched.any() else None,
+        "accuracy": float((d == touched).mean()),
+        "precision": tp / (tp + fp) if tp + fp else None,
+        "recall": tp / (tp + fn) if tp + fn else None,
+        "false_contact_rate": float(d[~touched].mean()) if (~touched).any() else None,
+        "mean_force_n": float(m.mean()),
+        "time_ms": float(np.median(ms)),
+    }

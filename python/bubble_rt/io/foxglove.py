@@ -187,118 +187,137 @@ def scene_update(
     V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     F = np.asarray(node_forces, dtype=np.float64).reshape(-1, 3)
     C = np.asarray(contact, dtype=bool).reshape(-1)
+    T = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     stamp = fm.Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000))
-    ident = fm.Pose(
-        position=fm.Vector3(x=0, y=0, z=0), orientation=fm.Quaternion(x=0, y=0, z=0, w=1)
-    )
-    cols = pressure_colors(normal_pressure, pressure_max_pa)
-    tri = fm.TriangleListPrimitive(
-        pose=ident,
-        points=[fm.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in V],
-        colors=[fm.Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0) for c in cols],
-        indices=[int(i) for i in np.asarray(triangles, dtype=np.int64).reshape(-1)],
-    )
-    membrane = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="membrane", triangles=[tri])
-    arrows = []
+
+    def entity(name: str, **primitives: Any) -> Any:
+        return fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id=name, **primitives)
+
     mags = np.linalg.norm(F, axis=1)
     if arrows_for == "contact":
         mags[~C] = 0.0
     if boundary is not None:
         mags[np.asarray(boundary, dtype=np.int64)] = 0.0  # the rim's support, not contact
     red = fm.Color(r=0.9, g=0.15, b=0.1, a=1.0)
-
-    def arrow(tip: NDArray, vec: NDArray, scale: float, color: Any, width: float) -> Any:
-        mag = float(np.linalg.norm(vec))
-        d = vec / mag
-        length = mag * scale
-        tail = tip - d * length
-        qx, qy, qz, qw = _quat_x_to(d)
-        head = min(0.3 * length, 2 * width + 0.002)
-        return fm.ArrowPrimitive(
-            pose=fm.Pose(
-                position=fm.Vector3(x=float(tail[0]), y=float(tail[1]), z=float(tail[2])),
-                orientation=fm.Quaternion(x=qx, y=qy, z=qz, w=qw),
-            ),
-            shaft_length=max(length - head, 0.0),
-            shaft_diameter=width,
-            head_length=head,
-            head_diameter=2.5 * width,
-            color=color,
+    arrows = [
+        _arrow(fm, V[i], F[i], arrow_scale, red, 0.0008) for i in np.flatnonzero(mags > min_arrow_n)
+    ]
+    entities = [
+        entity("membrane", triangles=[_membrane(fm, V, T, normal_pressure, pressure_max_pa)]),
+        entity("forces", arrows=arrows),
+        entity("contact", **_contact(fm, V, T, C, patches or [])),
+    ]
+    if net_force is not None and net_torque is not None:
+        wrench = _wrench_arrows(
+            fm, net_force, net_torque, patches, arrow_scale, min_arrow_n, torque_scale
         )
+        entities.append(entity("wrench", arrows=wrench))
+    return fm.SceneUpdate(entities=entities)
 
-    for i in np.flatnonzero(mags > min_arrow_n):
-        arrows.append(arrow(V[i], F[i], arrow_scale, red, 0.0008))
-    forces = fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="forces", arrows=arrows)
+
+def _pose(fm: Any, at: NDArray, q: tuple[float, float, float, float] = (0, 0, 0, 1)) -> Any:
+    return fm.Pose(
+        position=fm.Vector3(x=float(at[0]), y=float(at[1]), z=float(at[2])),
+        orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+
+
+def _points(fm: Any, P: NDArray) -> list[Any]:
+    return [fm.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in P]
+
+
+def _arrow(fm: Any, tip: NDArray, vec: NDArray, scale: float, color: Any, width: float) -> Any:
+    """An arrow ending at ``tip`` along ``vec``, ``scale`` metres per unit of its length."""
+    mag = float(np.linalg.norm(vec))
+    d = vec / mag
+    length = mag * scale
+    head = min(0.3 * length, 2 * width + 0.002)
+    return fm.ArrowPrimitive(
+        pose=_pose(fm, tip - d * length, _quat_x_to(d)),
+        shaft_length=max(length - head, 0.0),
+        shaft_diameter=width,
+        head_length=head,
+        head_diameter=2.5 * width,
+        color=color,
+    )
+
+
+def _membrane(
+    fm: Any, V: NDArray, T: NDArray, normal_pressure: NDArray, pressure_max_pa: float
+) -> Any:
+    """The membrane's triangles, coloured by normal pressure."""
+    cols = pressure_colors(normal_pressure, pressure_max_pa)
+    return fm.TriangleListPrimitive(
+        pose=_pose(fm, np.zeros(3)),
+        points=_points(fm, V),
+        colors=[fm.Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0) for c in cols],
+        indices=[int(i) for i in T.reshape(-1)],
+    )
+
+
+def _contact(fm: Any, V: NDArray, T: NDArray, C: NDArray, patches: list[Any]) -> dict[str, Any]:
+    """Contact nodes as spheres; each patch's outline and a label with its force."""
     yellow = fm.Color(r=1.0, g=0.9, b=0.1, a=1.0)
     spheres = [
         fm.SpherePrimitive(
-            pose=fm.Pose(
-                position=fm.Vector3(x=float(V[i, 0]), y=float(V[i, 1]), z=float(V[i, 2])),
-                orientation=fm.Quaternion(x=0, y=0, z=0, w=1),
-            ),
-            size=fm.Vector3(x=0.002, y=0.002, z=0.002),
-            color=yellow,
+            pose=_pose(fm, V[i]), size=fm.Vector3(x=0.002, y=0.002, z=0.002), color=yellow
         )
         for i in np.flatnonzero(C)
     ]
-    texts = []
-    for k, p in enumerate(patches or []):
-        c = np.asarray(p.centroid, dtype=np.float64)
-        texts.append(
-            fm.TextPrimitive(
-                pose=fm.Pose(
-                    position=fm.Vector3(x=float(c[0]), y=float(c[1]), z=float(c[2]) + 0.006),
-                    orientation=fm.Quaternion(x=0, y=0, z=0, w=1),
-                ),
-                billboard=True,
-                font_size=14.0,
-                scale_invariant=True,
-                color=yellow,
-                text=f"patch {k}: {float(np.linalg.norm(p.force)):.2f} N",
-            )
+    texts = [
+        fm.TextPrimitive(
+            pose=_pose(fm, np.asarray(p.centroid, dtype=np.float64) + [0.0, 0.0, 0.006]),
+            billboard=True,
+            font_size=14.0,
+            scale_invariant=True,
+            color=yellow,
+            text=f"patch {k}: {float(np.linalg.norm(p.force)):.2f} N",
         )
-    T = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        for k, p in enumerate(patches)
+    ]
     lines = []
-    for p in patches or []:
+    for p in patches:
         seg = patch_outline(T, np.asarray(p.nodes, dtype=np.int64))
         if len(seg):
             lines.append(
                 fm.LinePrimitive(
                     type=fm.LinePrimitiveLineType.LineList,
-                    pose=ident,
+                    pose=_pose(fm, np.zeros(3)),
                     thickness=2.0,
                     scale_invariant=True,
-                    points=[
-                        fm.Point3(x=float(V[i, 0]), y=float(V[i, 1]), z=float(V[i, 2]))
-                        for i in seg.ravel()
-                    ],
+                    points=_points(fm, V[seg.ravel()]),
                     color=yellow,
                 )
             )
-    patches_e = fm.SceneEntity(
-        timestamp=stamp, frame_id=FRAME_ID, id="contact", spheres=spheres, texts=texts, lines=lines
-    )
-    entities = [membrane, forces, patches_e]
-    if net_force is not None and net_torque is not None:
-        f = np.asarray(net_force, dtype=np.float64).reshape(3)
-        tau = np.asarray(net_torque, dtype=np.float64).reshape(3)
-        wrench_arrows = []
-        f2 = float(f @ f)
-        if f2 > min_arrow_n**2 and np.isfinite(f2):
-            axis0 = np.cross(f, tau) / f2  # the central axis' point nearest the origin
-            d = f / np.sqrt(f2)
-            c = np.asarray(patches[0].centroid, dtype=np.float64) if patches else axis0
-            tip = axis0 + ((c - axis0) @ d) * d
-            blue = fm.Color(r=0.1, g=0.4, b=1.0, a=1.0)
-            wrench_arrows.append(arrow(tip, f, arrow_scale, blue, 0.0015))
-        t_mag = float(np.linalg.norm(tau))
-        if t_mag * torque_scale > 1e-4 and np.isfinite(t_mag):
-            purple = fm.Color(r=0.6, g=0.2, b=0.9, a=1.0)
-            wrench_arrows.append(arrow(tau * torque_scale, tau, torque_scale, purple, 0.0015))
-        entities.append(
-            fm.SceneEntity(timestamp=stamp, frame_id=FRAME_ID, id="wrench", arrows=wrench_arrows)
-        )
-    return fm.SceneUpdate(entities=entities)
+    return {"spheres": spheres, "texts": texts, "lines": lines}
+
+
+def _wrench_arrows(
+    fm: Any,
+    net_force: NDArray,
+    net_torque: NDArray,
+    patches: list[Any] | None,
+    arrow_scale: float,
+    min_arrow_n: float,
+    torque_scale: float,
+) -> list[Any]:
+    """The net force on its line of action (ending where it meets the first patch's
+    centroid's foot on that line) and the torque about the origin."""
+    f = np.asarray(net_force, dtype=np.float64).reshape(3)
+    tau = np.asarray(net_torque, dtype=np.float64).reshape(3)
+    out = []
+    f2 = float(f @ f)
+    if f2 > min_arrow_n**2 and np.isfinite(f2):
+        axis0 = np.cross(f, tau) / f2  # the central axis' point nearest the origin
+        d = f / np.sqrt(f2)
+        c = np.asarray(patches[0].centroid, dtype=np.float64) if patches else axis0
+        tip = axis0 + ((c - axis0) @ d) * d
+        out.append(_arrow(fm, tip, f, arrow_scale, fm.Color(r=0.1, g=0.4, b=1.0, a=1.0), 0.0015))
+    t_mag = float(np.linalg.norm(tau))
+    if t_mag * torque_scale > 1e-4 and np.isfinite(t_mag):
+        purple = fm.Color(r=0.6, g=0.2, b=0.9, a=1.0)
+        out.append(_arrow(fm, tau * torque_scale, tau, torque_scale, purple, 0.0015))
+    return out
 
 
 def patch_outline(triangles: NDArray, nodes: NDArray) -> NDArray[np.int64]:

@@ -302,52 +302,71 @@ def scan(path: str | Path, report: ReadReport | None = None) -> Iterator[tuple[i
                 opcode, length = mm[pos], _u64(mm, pos + 1)
                 end = pos + 9 + length
                 if opcode not in _KNOWN or end > data_end:
-                    nxt = _resync(mm, pos, data_end)
-                    report.bytes_skipped += nxt - pos
-                    if nxt >= data_end and opcode in _KNOWN:
-                        report.problems.append(
-                            f"file ends inside a record at byte {pos} (the last {nxt - pos} "
-                            "bytes are unreadable: the file was cut)"
-                        )
-                    else:
-                        report.problems.append(
-                            f"damaged record header at byte {pos}: skipped {nxt - pos} bytes"
-                        )
-                    pos = nxt
+                    pos = _skip_damaged(mm, pos, data_end, opcode, report)
                     continue
-                if opcode == _CHUNK:
-                    try:
-                        records = _chunk_records(bytes(mm[pos + 9 : end]))
-                    except Exception as exc:
-                        report.chunks_skipped += 1
-                        report.bytes_skipped += 9 + length
-                        report.problems.append(
-                            f"damaged chunk at byte {pos} ({9 + length} bytes) skipped: "
-                            f"{type(exc).__name__}: {exc}"
-                        )
-                    else:
-                        report.chunks += 1
-                        yield from counted(records)
-                elif opcode in (_SCHEMA, _CHANNEL, _MESSAGE):
-                    from mcap.data_stream import ReadDataStream
-                    from mcap.records import Channel, Message, Schema
-
-                    stream = ReadDataStream(BytesIO(bytes(mm[pos + 9 : end])))
-                    try:
-                        if opcode == _SCHEMA:
-                            rec = Schema.read(stream)
-                        elif opcode == _CHANNEL:
-                            rec = Channel.read(stream)
-                        else:
-                            rec = Message.read(stream, length)
-                    except Exception as exc:
-                        report.bytes_skipped += 9 + length
-                        report.problems.append(f"damaged record at byte {pos}: {exc}")
-                    else:
-                        yield from counted([(opcode, rec)])
-                elif opcode in (_DATA_END, _FOOTER):
+                if opcode in (_DATA_END, _FOOTER):
                     break
+                yield from counted(_records_at(mm, pos, opcode, length, report))
                 pos = end
+    _final_problems(report)
+
+
+def _skip_damaged(mm: Any, pos: int, data_end: int, opcode: int, report: ReadReport) -> int:
+    """Past a record header that is damaged or runs beyond the data: the next byte where a
+    record header reads well (``_resync``), the skip reported."""
+    nxt = _resync(mm, pos, data_end)
+    report.bytes_skipped += nxt - pos
+    if nxt >= data_end and opcode in _KNOWN:
+        report.problems.append(
+            f"file ends inside a record at byte {pos} (the last {nxt - pos} "
+            "bytes are unreadable: the file was cut)"
+        )
+    else:
+        report.problems.append(f"damaged record header at byte {pos}: skipped {nxt - pos} bytes")
+    return nxt
+
+
+def _records_at(
+    mm: Any, pos: int, opcode: int, length: int, report: ReadReport
+) -> list[tuple[int, Any]]:
+    """The Schema, Channel and Message records of the record at ``pos`` (a chunk's, or the
+    record itself); a damaged one is reported and gives none."""
+    body = bytes(mm[pos + 9 : pos + 9 + length])
+    if opcode == _CHUNK:
+        try:
+            records = _chunk_records(body)
+        except Exception as exc:
+            report.chunks_skipped += 1
+            report.bytes_skipped += 9 + length
+            report.problems.append(
+                f"damaged chunk at byte {pos} ({9 + length} bytes) skipped: "
+                f"{type(exc).__name__}: {exc}"
+            )
+            return []
+        report.chunks += 1
+        return records
+    if opcode not in (_SCHEMA, _CHANNEL, _MESSAGE):
+        return []
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Channel, Message, Schema
+
+    stream = ReadDataStream(BytesIO(body))
+    try:
+        if opcode == _SCHEMA:
+            rec: Any = Schema.read(stream)
+        elif opcode == _CHANNEL:
+            rec = Channel.read(stream)
+        else:
+            rec = Message.read(stream, length)
+    except Exception as exc:
+        report.bytes_skipped += 9 + length
+        report.problems.append(f"damaged record at byte {pos}: {exc}")
+        return []
+    return [(opcode, rec)]
+
+
+def _final_problems(report: ReadReport) -> None:
+    """What the whole read says: no summary or footer, or indexed messages not read."""
     if not report.closed:
         report.problems.insert(0, "not closed (no summary or footer)")
     elif report.messages_indexed is not None and report.messages < report.messages_indexed:

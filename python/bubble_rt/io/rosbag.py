@@ -60,7 +60,7 @@ as header stamp and bag timestamp. :func:`write_bag` writes frames in the kit's 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -119,6 +119,50 @@ def _bag_files(path: Path) -> list[Path]:
     return sorted(
         f for f in path.iterdir() if f.name == "metadata.yaml" or f.suffix in (".db3", ".mcap")
     )
+
+
+#: Image encodings read, per role (lower case).
+_ENCODINGS: dict[str, tuple[str, ...]] = {
+    "color": ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3"),
+    "depth": ("16uc1", "mono16", "32fc1"),
+}
+
+
+@dataclass
+class _Scanned:
+    """What the first pass over a bag collects (times in seconds, pressures in Pa)."""
+
+    color_t: list[float] = field(default_factory=list)
+    depth_t: list[float] = field(default_factory=list)
+    # (width, height) and encoding of each role's first image: a later change makes those
+    # frames bad ones (skipped and named), not the whole bag.
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    encodings: dict[str, str] = field(default_factory=dict)
+    info: Any = None
+    p_t: list[float] = field(default_factory=list)
+    p_v: list[float] = field(default_factory=list)
+    n_pressure: int = 0
+    w_t: list[float] = field(default_factory=list)
+    w_v: list[list[float]] = field(default_factory=list)
+    tf_msgs: list[Any] = field(default_factory=list)
+
+    def add(self, topics: dict[str, str], conn: Any, msg: Any) -> None:
+        """One message of a role other than pressure."""
+        topic = conn.topic
+        for role, times in (("color", self.color_t), ("depth", self.depth_t)):
+            if topic == topics[role]:
+                times.append(stamp_s(msg.header))
+                self.sizes.setdefault(role, (int(msg.width), int(msg.height)))
+                self.encodings.setdefault(role, str(msg.encoding))
+                return
+        if topic == topics["info"]:
+            self.info = self.info or msg
+        elif topic == topics.get("wrench"):
+            self.w_t.append(stamp_s(msg.header))
+            f, m = msg.wrench.force, msg.wrench.torque
+            self.w_v.append([f.x, f.y, f.z, m.x, m.y, m.z])
+        elif conn.msgtype == TF:
+            self.tf_msgs.append(msg)
 
 
 # ------------------------------------------------------------------------- reading
@@ -243,112 +287,93 @@ class BagRecording:
 
     # ---------------------------------------------------------------- first pass
     def _scan(self, reader: Any, sync_tol_s: float) -> None:
+        """One pass over the messages: timestamps, sizes and encodings of the images, the
+        camera info, the pressure and wrench series, /tf_static; checked, then colour paired
+        with depth."""
         tp = self.topics
         want = {tp[r] for r in tp} | {c.topic for c in reader.connections if c.msgtype == TF}
         conns = [c for c in reader.connections if c.topic in want]
-        color_t: list[float] = []
-        depth_t: list[float] = []
-        color_size: tuple[int, int] | None = None
-        depth_size: tuple[int, int] | None = None
-        encodings: dict[str, str] = {}
-        info: Any = None
-        p_t: list[float] = []
-        p_v: list[float] = []
-        w_t: list[float] = []
-        w_v: list[list[float]] = []
-        tf_msgs: list[Any] = []
-        n_p = 0
-        name = self.path.name
+        sc = _Scanned()
         for conn, recv_ns, raw in reader.messages(connections=conns):
-            topic = conn.topic
-            if topic == tp["pressure"]:
-                msg = reader.deserialize(raw, conn.msgtype)
-                k, n_p = n_p, n_p + 1
-                hpa = float(msg.data)
-                if not np.isfinite(hpa):  # a bad reading is skipped: frames use the others
-                    where = f"{name} {topic} reading {k}"
-                    reason = f"pressure reading is not finite: {hpa}"
-                    self.reading_faults.append(
-                        FrameFault(k, where, reason, "pressure", reading=True)
-                    )
-                    continue
-                p_t.append(recv_ns * 1e-9 - self.pressure_delay_s)
-                p_v.append(hpa * HPA)
-                continue
-            msg = reader.deserialize(raw, conn.msgtype)
-            # Sizes and encodings are the first image's: a later change makes those frames
-            # bad ones (skipped and named), not the whole bag.
-            if topic == tp["color"]:
-                color_t.append(stamp_s(msg.header))
-                color_size = color_size or (int(msg.width), int(msg.height))
-                encodings.setdefault("color", str(msg.encoding))
-            elif topic == tp["depth"]:
-                depth_t.append(stamp_s(msg.header))
-                depth_size = depth_size or (int(msg.width), int(msg.height))
-                encodings.setdefault("depth", str(msg.encoding))
-            elif topic == tp["info"]:
-                info = info or msg
-            elif topic == tp.get("wrench"):
-                w_t.append(stamp_s(msg.header))
-                f, m = msg.wrench.force, msg.wrench.torque
-                w_v.append([f.x, f.y, f.z, m.x, m.y, m.z])
-            elif conn.msgtype == TF:
-                tf_msgs.append(msg)
-        where = str(self.path)
+            if conn.topic == tp["pressure"]:
+                self._pressure_reading(sc, reader.deserialize(raw, conn.msgtype), recv_ns)
+            else:
+                sc.add(tp, conn, reader.deserialize(raw, conn.msgtype))
+        self._check(sc)
+        self.depth_encoding = sc.encodings["depth"]
+        self._camera0 = camera_from_info(sc.info)
+        self._tf_pose = self._pose_from_tf(sc.tf_msgs, str(sc.info.header.frame_id))
+        self._index = self._pair(sc, sync_tol_s)
+        order = np.argsort(sc.p_t, kind="stable")
+        self._p_t = np.asarray(sc.p_t)[order]
+        self._p_v = np.asarray(sc.p_v)[order]
+        self._wrench = (np.asarray(sc.w_t), np.asarray(sc.w_v)) if sc.w_t else None
+
+    def _pressure_reading(self, sc: _Scanned, msg: Any, recv_ns: int) -> None:
+        """A pressure reading (hPa, no header: sampled ``pressure_delay_s`` before it was
+        received); a non-finite one is skipped and named, the frames use the others."""
+        k = sc.n_pressure
+        sc.n_pressure += 1
+        hpa = float(msg.data)
+        if not np.isfinite(hpa):
+            where = f"{self.path.name} {self.topics['pressure']} reading {k}"
+            reason = f"pressure reading is not finite: {hpa}"
+            self.reading_faults.append(FrameFault(k, where, reason, "pressure", reading=True))
+            return
+        sc.p_t.append(recv_ns * 1e-9 - self.pressure_delay_s)
+        sc.p_v.append(hpa * HPA)
+
+    def _check(self, sc: _Scanned) -> None:
+        """Every role present, colour and depth of one size, supported encodings, and a
+        camera_info that matches the images; FrameError says what is wrong."""
+        tp, where = self.topics, str(self.path)
         missing = [
             name
             for name, seq in (
-                (f"colour images on {tp['color']}", color_t),
-                (f"depth images on {tp['depth']}", depth_t),
-                (f"pressure readings on {tp['pressure']}", p_t),
+                (f"colour images on {tp['color']}", sc.color_t),
+                (f"depth images on {tp['depth']}", sc.depth_t),
+                (f"pressure readings on {tp['pressure']}", sc.p_t),
             )
             if not seq
         ]
-        if info is None:
+        if sc.info is None:
             missing.append(f"camera_info on {tp['info']}")
         if missing:
             bad = f" ({len(self.reading_faults)} not finite)" if self.reading_faults else ""
-            raise FrameError(f"{where}: no " + ", no ".join(missing) + (bad if not p_t else ""))
-        if color_size != depth_size:
+            raise FrameError(f"{where}: no " + ", no ".join(missing) + (bad if not sc.p_t else ""))
+        cw, ch = sc.sizes["color"]
+        if sc.sizes["color"] != sc.sizes["depth"]:
+            dw, dh = sc.sizes["depth"]
             raise FrameError(
-                f"{where}: colour {color_size[0]} x {color_size[1]} ({tp['color']}) and depth "  # type: ignore[index]
-                f"{depth_size[0]} x {depth_size[1]} ({tp['depth']}) differ in size; record the "  # type: ignore[index]
-                "depth aligned to colour (realsense-ros align_depth.enable:=true) or pass "
-                "--topics depth=<aligned topic>"
+                f"{where}: colour {cw} x {ch} ({tp['color']}) and depth {dw} x {dh} "
+                f"({tp['depth']}) differ in size; record the depth aligned to colour "
+                "(realsense-ros align_depth.enable:=true) or pass --topics depth=<aligned topic>"
             )
-        for role in ("color", "depth"):
-            enc = encodings[role].lower()
-            ok: tuple[str, ...] = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8uc3")
-            if role == "depth":
-                ok = ("16uc1", "mono16", "32fc1")
-            if enc not in ok:
-                raise FrameError(f"{where}: {role} encoding {encodings[role]!r} not supported")
-        self.depth_encoding = encodings["depth"]
-        cam = camera_from_info(info)
-        if (cam.width, cam.height) != color_size:
+        for role, ok in _ENCODINGS.items():
+            if sc.encodings[role].lower() not in ok:
+                raise FrameError(f"{where}: {role} encoding {sc.encodings[role]!r} not supported")
+        cam = camera_from_info(sc.info)
+        if (cam.width, cam.height) != (cw, ch):
             raise FrameError(
                 f"{where}: camera_info ({tp['info']}) is {cam.width} x {cam.height} but the "
-                f"colour images are {color_size[0]} x {color_size[1]}"  # type: ignore[index]
+                f"colour images are {cw} x {ch}"
             )
-        self._camera0 = cam
-        self._tf_pose = self._pose_from_tf(tf_msgs, str(info.header.frame_id))
-        # Pair colour with the nearest depth image by header stamp.
-        dt = np.asarray(depth_t)
+
+    def _pair(self, sc: _Scanned, sync_tol_s: float) -> list[_Index]:
+        """Colour images paired with the nearest depth image by header stamp (within
+        ``sync_tol_s``); the unpaired are counted in ``skipped``."""
+        dt = np.asarray(sc.depth_t)
         index: list[_Index] = []
-        for i, t in enumerate(color_t):
+        for i, t in enumerate(sc.color_t):
             j = int(np.argmin(np.abs(dt - t)))
             if abs(dt[j] - t) <= sync_tol_s:
                 index.append(_Index(color=i, depth=j, t=t))
-        self.skipped = len(color_t) - len(index)
+        self.skipped = len(sc.color_t) - len(index)
         if not index:
             raise FrameError(
-                f"{where}: no colour image has a depth image within {sync_tol_s * 1e3:.0f} ms"
+                f"{self.path}: no colour image has a depth image within {sync_tol_s * 1e3:.0f} ms"
             )
-        self._index = index
-        order = np.argsort(p_t, kind="stable")
-        self._p_t = np.asarray(p_t)[order]
-        self._p_v = np.asarray(p_v)[order]
-        self._wrench = (np.asarray(w_t), np.asarray(w_v)) if w_t else None
+        return index
 
     def _pose_from_tf(self, msgs: list[Any], camera_frame: str) -> NDArray[np.float64] | None:
         for m in msgs:

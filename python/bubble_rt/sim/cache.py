@@ -1,24 +1,20 @@
 """On-disk cache of physics results (the expensive part of a simulation).
 
 Entries are keyed by a hash of everything the physics depends on in the scene plus the package
-version (``Scene.physics_key``). Location: ``$BUBBLE_RT_CACHE`` if set, else
-``~/.cache/bubble_rt``. Files are written atomically, so concurrent runs are safe.
+version (``Scene.physics_key``). Location and atomic writes: :mod:`bubble_rt._diskcache`
+(``$BUBBLE_RT_CACHE`` if set, else ``~/.cache/bubble_rt``), so concurrent runs are safe.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
-import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt import _diskcache
+from bubble_rt._diskcache import cache_dir
 
-def cache_dir() -> Path:
-    """The cache directory (created on demand)."""
-    env = os.environ.get("BUBBLE_RT_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "bubble_rt"
+__all__ = ["cache_dir", "cache_path", "load", "store"]
 
 
 def cache_path(key: str) -> Path:
@@ -27,26 +23,9 @@ def cache_path(key: str) -> Path:
 
 def load(key: str) -> dict[str, NDArray] | None:
     """The cached arrays for ``key``, or None when absent or unreadable."""
-    path = cache_path(key)
-    if not path.exists():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError):
-        return None
+    return _diskcache.load(cache_path(key))
 
 
 def store(key: str, arrays: dict[str, NDArray]) -> Path:
     """Write arrays for ``key`` atomically; returns the file path."""
-    path = cache_path(key)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)  # type: ignore[arg-type]
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return _diskcache.store(cache_path(key), arrays)

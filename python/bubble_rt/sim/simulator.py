@@ -329,6 +329,11 @@ class Simulator:
             self._renderer = MembraneRenderer(self.camera, run.triangles, run.rest_vertices, tex)
         return self._renderer
 
+    def truth(self, i: int | None) -> GroundTruth:
+        """The ground truth of scene frame ``i`` (``i`` modulo the scene's frames; None: the
+        untouched reference), as ``frames()`` and ``reference_frames()`` attach it."""
+        return self._truth(None if i is None else int(i) % int(self.scene.frames))
+
     def _truth(self, i: int | None) -> GroundTruth:
         run = self.run
         if self._locator is None:
