@@ -656,4 +656,7 @@ class SimProducer:
 
 
 if __name__ == "__main__":
-    sys.exit(child_main())
+    try:
+        sys.exit(child_main())
+    except BrokenPipeError:  # the daemon is gone (stopped, or failed to start): nobody to tell
+        os._exit(0)
