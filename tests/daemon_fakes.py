@@ -3,17 +3,21 @@
 from __future__ import annotations
 
 import os
-import socket
 import threading
+from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+import pytest
 from bubble_rt.camera import Camera
-from bubble_rt.config import DaemonConfig
+from bubble_rt.config import ConfigError, DaemonConfig
+from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
 from bubble_rt.frames import Frame
+from bubble_rt.io.client import Controller
 from bubble_rt.mesh import Mesh
+from waiting import ANY_PORT
 
 H, W = 24, 32
 P0 = 101325.0
@@ -26,22 +30,23 @@ def coarse_mesh() -> Mesh:
     return _MESH["m"]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def fake_config(**overrides: Any) -> DaemonConfig:
     base = {
-        "network.pub": f"tcp://127.0.0.1:{free_port()}",
-        "network.control": f"tcp://127.0.0.1:{free_port()}",
+        # Any free port: the daemon binds it and names it (Daemon.pub_address, .control_address).
+        "network.pub": ANY_PORT,
+        "network.control": ANY_PORT,
         "network.status_period_s": 0.2,
         "reference.frames": 3,
         "camera.stall_timeout_s": 0.3,
     }
     base.update(overrides)
     return DaemonConfig().with_overrides(**base)
+
+
+def status_of(d: Any) -> Any:
+    """The running daemon ``d``'s status, asked over its control socket."""
+    with Controller(d.control_address) as c:
+        return c.status()
 
 
 def make_frame(i: int, push: float = 0.0) -> Frame:
@@ -152,6 +157,14 @@ class FakeSensor:
     def write(self, data: bytes) -> None:
         os.write(self.master, data)
 
+    def unread(self) -> int:
+        """Bytes written that the port's reader has not read yet (the tty's input queue)."""
+        import fcntl
+        import struct
+        import termios
+
+        return int(struct.unpack("i", fcntl.ioctl(self.slave, termios.FIONREAD, b"\0" * 4))[0])
+
     def vanish(self) -> None:
         os.close(self.master)
         os.close(self.slave)
@@ -178,6 +191,69 @@ class FakeSimulator:
 
 def constant_pressure() -> tuple[ConstantPressure, None]:
     return ConstantPressure(P0), None
+
+
+def start(
+    cfg: DaemonConfig | None = None, camera: ScriptedCamera | None = None, **kw: Any
+) -> tuple[Daemon, ScriptedCamera]:
+    """A started daemon on the fakes (``fake_config()`` unless ``cfg``), ready, and its camera."""
+    cam = camera or ScriptedCamera()
+    d = Daemon(
+        cfg or fake_config(),
+        camera=cam,
+        pressure=constant_pressure(),
+        processor_factory=FakeProcessor,
+        **kw,
+    ).start()
+    assert d.wait_ready(20.0)
+    return d, cam
+
+
+def nested(dotted: str, value: Any) -> dict[str, Any]:
+    """``{"section": {"key": value}}`` for ``dotted`` = "section.key"."""
+    section, _, name = dotted.rpartition(".")
+    return {section: {name: value}} if section else {name: value}
+
+
+def refused_at_load(dotted: str, value: Any) -> ConfigError:
+    """The ConfigError of a configuration whose key ``dotted`` is ``value``."""
+    with pytest.raises(ConfigError) as ei:
+        DaemonConfig.from_dict(nested(dotted, value))
+    return ei.value
+
+
+#: The fakes' camera (H x W pixels).
+CAM = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
+
+
+def sim_like_camera(pressure_pa: float = P0, rate_hz: float = 100.0) -> IterableCamera:
+    """Frames on the scene clock from 0 and reference frames at t = -0.1 .. -0.033 s, like
+    the simulator's."""
+
+    def frames():  # type: ignore[no-untyped-def]
+        for i in range(100000):
+            yield replace(make_frame(i), pressure_pa=pressure_pa)
+
+    def reference(n: int) -> list[Frame]:
+        return [
+            replace(make_frame(500 + k), t=-0.1 + k / 30.0, index=k - n, pressure_pa=pressure_pa)
+            for k in range(n)
+        ]
+
+    return IterableCamera(frames, CAM, rate_hz=rate_hz, reference=reference, keep_index=True)
+
+
+def start_daemon(camera=None, pressure=None, **overrides):  # type: ignore[no-untyped-def]
+    """A started daemon on ``camera`` (default ScriptedCamera) and the fake processor, with
+    ``fake_config(**overrides)``, ready (like :func:`start`, which also returns the camera)."""
+    d = Daemon(
+        fake_config(**overrides),
+        camera=camera or ScriptedCamera(),
+        pressure=pressure or constant_pressure(),
+        processor_factory=FakeProcessor,
+    ).start()
+    assert d.wait_ready(20)
+    return d
 
 
 def main() -> None:

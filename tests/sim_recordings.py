@@ -114,3 +114,32 @@ def stiffer_trajectory(
         reference_frames=saturated_to_invalid(sim.reference_frames(n_reference)),
         camera=sim.camera,
     )
+
+
+#: A six-frame scene on the real physics (500 nodes): fast enough for daemon tests.
+TINY_SCENE = """
+name = "tiny"
+seed = 0
+frames = 6
+
+[sensor]
+camera = "d405"
+sim_nodes = 500
+
+[rates]
+camera_hz = 30.0
+pressure_hz = 100.0
+
+[indenter]
+preset = "round"
+
+[trajectory]
+loop = true
+keyframes = [
+  { t = 0.0, at = [0.0, 0.0], depth = -0.002 },
+  { t = 0.2, at = [0.0, 0.0], depth = 0.006 },
+]
+
+[effects]
+gas_compression = true
+"""

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import io
 import json
+import subprocess
+import sys
 import threading
 
 import pytest
 from bubble_rt.commands.echo import RateMeter, echo, format_line
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io.client import ControlError, Controller, Subscriber, control_address_for
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, free_port
+from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
+from waiting import child_env, nobody_listens, wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -33,8 +36,8 @@ def test_control_address_for_tcp():
     assert control_address_for("ipc:///tmp/x") is None
 
 
-def test_controller_times_out_without_daemon():
-    with Controller(f"tcp://127.0.0.1:{free_port()}", timeout_s=0.2) as c:
+def test_controller_times_out_without_daemon(tmp_path):
+    with Controller(nobody_listens(tmp_path), timeout_s=0.2) as c:
         with pytest.raises(TimeoutError, match="no reply"):
             c.status()
         with pytest.raises(TimeoutError):  # the socket was reset and is usable again
@@ -95,8 +98,8 @@ def test_echo_stops_on_event(daemon):
     assert echo(daemon.pub_address, stop=stop, out=io.StringIO()) == 0
 
 
-def test_echo_gives_up_without_frames():
-    assert echo(f"tcp://127.0.0.1:{free_port()}", timeout_s=0.3, out=io.StringIO()) == 1
+def test_echo_gives_up_without_frames(tmp_path):
+    assert echo(nobody_listens(tmp_path), timeout_s=0.3, out=io.StringIO()) == 1
 
 
 def test_rate_meter():
@@ -143,7 +146,56 @@ def test_record_command_without_daemon_fails_cleanly(tmp_path):
     from bubble_rt.commands import record
 
     args = argparse.Namespace(
-        output=str(tmp_path / "x.mcap"), control=f"tcp://127.0.0.1:{free_port()}", duration=0.1
+        output=str(tmp_path / "x.mcap"), control=nobody_listens(tmp_path), duration=0.1
     )
     # Controller timeout is 5 s in the command; an absent daemon is reported, not raised.
     assert record.run(args) == 1
+
+
+@pytest.mark.timeout(240)
+# ------------------------------------------------------------------------------ record command
+def test_record_command_says_the_daemon_is_gone(tmp_path):
+    d = Daemon(
+        fake_config(),
+        camera=ScriptedCamera(),
+        pressure=constant_pressure(),
+        processor_factory=FakeProcessor,
+    ).start()
+    out = tmp_path / "r.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bubble_rt", "record", "-o", str(out)]
+        + ["--control", d.control_address],
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert d.wait_ready(20)
+        assert wait_for(lambda: d.recorder is not None, 30)
+        recorder = d.recorder
+        assert wait_for(lambda: recorder.written >= 10, 30)  # the command's recording runs
+    finally:
+        d.stop()  # the daemon goes away while `bubble-rt record` runs
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "is gone" in err and "Traceback" not in err
+    assert "was finalised" in err  # the daemon's stop finalised it
+
+
+@pytest.mark.timeout(240)
+def test_record_command_without_a_daemon_says_so(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "bubble_rt", "record", "-o", str(tmp_path / "r.mcap")]
+        + ["--control", nobody_listens(tmp_path)],
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1
+    assert "no daemon answers" in proc.stderr

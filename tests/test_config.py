@@ -2,8 +2,23 @@
 
 from __future__ import annotations
 
+import math
+import tomllib
+from typing import Any
+
 import pytest
-from bubble_rt.config import ConfigError, DaemonConfig
+from bubble_rt.config import (
+    ESTIMATOR_RANGES,
+    ConfigError,
+    DaemonConfig,
+    dump_toml,
+    key_choices,
+    key_comment,
+    key_range,
+    keys,
+)
+from bubble_rt.io.protocol import PARAM_NAMES
+from daemon_fakes import nested, refused_at_load
 
 
 def test_defaults_round_trip_through_toml(tmp_path):
@@ -186,3 +201,157 @@ def test_ambient_pressure_out_of_range_names_the_key(value):
 
     with pytest.raises(ConfigError, match="estimator.ambient_pa"):
         DaemonConfig().with_overrides(**{"estimator.ambient_pa": value})
+
+
+# ------------------------------------------------------------------------------ fuzz
+HUGE_INT = 10**12
+
+
+FUZZ_VALUES: list[Any] = [
+    "wrong type",
+    True,
+    math.nan,
+    math.inf,
+    -math.inf,
+    -1,
+    -1.0,
+    0,
+    0.0,
+    1e300,
+    -1e300,
+    HUGE_INT,
+    5e-324,
+]
+
+
+#: Checks between keys (the other key keeps its default).
+CROSS_CHECKS = {
+    "pressure.min_pa": lambda v: v < DaemonConfig().pressure.max_pa,
+    "pressure.max_pa": lambda v: v > DaemonConfig().pressure.min_pa,
+}
+
+
+def _expected_valid(f: Any, value: Any, dotted: str = "") -> bool | None:
+    """What the fuzz test expects of ``value`` for key ``dotted`` (from its declaration)."""
+    default = f.default
+    if isinstance(default, bool):
+        return isinstance(value, bool)
+    if isinstance(default, str):
+        # Numbers are the wrong type; words: only the declared choices (free-form words such
+        # as paths and sources have their own named tests).
+        if not isinstance(value, str):
+            return False
+        choices = key_choices(f)
+        return None if choices is None else value in choices
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    if isinstance(default, int) and not isinstance(value, int):
+        return False
+    rng = key_range(f)
+    assert rng is not None, "every numeric key has a range"
+    ok = math.isfinite(value) and rng.lo <= value <= rng.hi
+    return ok and CROSS_CHECKS.get(dotted, lambda v: True)(value)
+
+
+def _mid_value(f: Any) -> Any:
+    rng = key_range(f)
+    v = math.sqrt(max(rng.lo, 1e-3) * rng.hi) if rng.lo >= 0 else (rng.lo + rng.hi) / 2
+    return int(v) if isinstance(f.default, int) else v
+
+
+def test_config_fuzz_every_key_refused_at_load_with_its_key_named_or_accepted():
+    all_keys = keys()
+    assert len(all_keys) >= 45  # enumerated from the dataclasses: a new key cannot be missed
+    checked = 0
+    for dotted, f in all_keys:
+        values = list(FUZZ_VALUES)
+        if key_range(f) is not None:
+            values.append(_mid_value(f))
+        if key_choices(f) is not None:
+            values.append("not-a-choice")
+        for value in values:
+            valid = _expected_valid(f, value, dotted)
+            if valid is None:
+                continue
+            if valid:
+                cfg = DaemonConfig.from_dict(nested(dotted, value))
+                got = cfg
+                for part in dotted.split("."):
+                    got = getattr(got, part)
+                assert got == value, (dotted, value)
+            else:
+                e = refused_at_load(dotted, value)
+                assert e.key == dotted, (dotted, value, str(e))
+                rng = key_range(f)
+                if rng is not None:
+                    assert rng.text() in str(e), (dotted, value, str(e))
+                if isinstance(value, float) and not isinstance(f.default, str):
+                    assert repr(value) in str(e), (dotted, value, str(e))
+            checked += 1
+    assert checked > 500
+
+
+def test_config_fuzz_through_toml_files(tmp_path):
+    """The same refusals when the values come from a file (nan/inf are TOML floats)."""
+    p = tmp_path / "c.toml"
+    for dotted, f in keys():
+        section, _, name = dotted.rpartition(".")
+        for text in ("nan", "inf", "-1", "1e300"):
+            p.write_text((f"[{section}]\n" if section else "") + f"{name} = {text}\n")
+            value = tomllib.loads(p.read_text())
+            value = value[section][name] if section else value[name]
+            if _expected_valid(f, value, dotted):
+                DaemonConfig.load(p)
+                continue
+            with pytest.raises(ConfigError) as ei:
+                DaemonConfig.load(p)
+            assert ei.value.key == dotted, (dotted, text, str(ei.value))
+
+
+def test_every_key_has_a_documented_range_in_config_dump():
+    out = dump_toml(DaemonConfig())
+    assert DaemonConfig.from_dict(tomllib.loads(out)) == DaemonConfig()
+    for dotted, f in keys():
+        assert f.metadata.get("doc"), f"{dotted} has no documentation"
+        comment = key_comment(f)
+        first = comment.split()[0]
+        assert first in out, dotted
+        rng = key_range(f)
+        if rng is not None:
+            assert rng.text() in " ".join(out.split()), dotted
+        if isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            assert rng is not None, f"numeric {dotted} has no range"
+
+
+# ------------------------------------------------------------------------------ the issue's runs
+def test_constant_nan_pressure_is_refused_at_load():
+    e = refused_at_load("pressure.source", "constant:nan")
+    assert e.key == "pressure.source"
+    assert "nan" in str(e) and "[30000, 200000]" in str(e)
+    e = refused_at_load("pressure.source", "constant:1e300")
+    assert "1e+300" in str(e)
+    DaemonConfig.from_dict(nested("pressure.source", "constant:101325"))
+
+
+def test_huge_thickness_is_refused_at_load():
+    e = refused_at_load("estimator.thickness", 1e300)
+    assert e.key == "estimator.thickness" and "[1e-05, 0.01] m" in str(e) and "1e+300" in str(e)
+
+
+def test_opencv_threads_are_bounded():
+    e = refused_at_load("processing.opencv_threads", 100000000000)
+    assert e.key == "processing.opencv_threads" and "[0, 256]" in str(e)
+    assert "100000000000" in str(e)
+
+
+def test_parameter_ranges_are_the_configurations():
+    for name in PARAM_NAMES:
+        r = ESTIMATOR_RANGES[name]
+        for bad in (r.lo - abs(r.lo) - 1, r.hi * 10):
+            with pytest.raises(ConfigError, match=f"estimator.{name}: must be in"):
+                DaemonConfig.from_dict({"estimator": {name: bad}})
+            from bubble_rt.daemon.control import validate_params
+
+            assert validate_params({name: bad}) == (f"set_params: {name} {r.problem(bad)}")
+        DaemonConfig.from_dict({"estimator": {name: r.lo}})
+        DaemonConfig.from_dict({"estimator": {name: r.hi}})

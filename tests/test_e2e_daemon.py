@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 from bubble_rt.io.client import Controller, Subscriber
-from daemon_fakes import free_port
+from waiting import ANY_PORT, ServedProcess
 
 pytestmark = [pytest.mark.timeout(400), pytest.mark.slow]
 
@@ -56,7 +56,7 @@ def check_recording(path, mesh_id: str) -> None:
 def test_serve_records_the_demo_scene_from_the_first_frame(tmp_path):
     """`bubble-rt serve --record x.mcap --duration 6` exited 1 with struct.error."""
     out = tmp_path / "x.mcap"
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    pub, ctl = ANY_PORT, ANY_PORT
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "bubble_rt", "serve", "--pub", pub, "--control", ctl]
     done = subprocess.run(
@@ -84,30 +84,26 @@ def test_serve_records_the_demo_scene_from_the_first_frame(tmp_path):
 
 
 def test_daemon_on_simulated_scene_matches_ground_truth(tmp_path):
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     out = tmp_path / "demo.mcap"  # recorded as the README shows: serve --record FILE
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bubble_rt", "serve", "--pub", pub, "--control", ctl]
+    served = ServedProcess(
+        [sys.executable, "-m", "bubble_rt", "serve", "--pub", ANY_PORT, "--control", ANY_PORT]
         + ["--record", str(out)],
         env=env,
-        stderr=subprocess.PIPE,
-        text=True,
     )
     try:
+        pub, ctl = served.addresses(300)
         with Subscriber(pub, ctl, timeout_s=300) as sub:
             mesh = sub.fetch_mesh(300)
             frames = list(sub.frames(count=150, timeout_s=60))
         with Controller(ctl) as c:
             status = c.status()
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=5)
+        served.proc.send_signal(signal.SIGINT)
+        returncode = served.finish(30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    err = proc.stderr.read() if proc.stderr else ""
-    assert proc.returncode == 0, err
+        served.kill()
+    err = served.err
+    assert returncode == 0, err
     assert len(frames) >= 30, err
     assert mesh.n_nodes == 390
     assert status.state in ("running", "degraded") and status.frames_published >= 30

@@ -130,7 +130,7 @@ def test_estimate_skips_the_bad_frames_of_an_mcap_recording(tmp_path):
     """The project's MCAP recordings go through the same tolerant iteration (estimate could
     not read them at all: it indexed frames, which an MCAP file does not offer)."""
     from daemon_fakes import coarse_mesh
-    from test_reliability import bad_mcap
+    from recording_fakes import bad_mcap
 
     rec = tmp_path / "bad.mcap"
     bad_mcap(rec)  # frames 1-4 bad: image cut short, 16 x 12 rgb, all-NaN depth, NaN pressure

@@ -8,10 +8,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from bubble_rt.config import ESTIMATOR_RANGES
 from bubble_rt.estimation.estimator import Estimate, EstimatorConfig, ForceEstimator
 from bubble_rt.estimation.membrane import Material
 from bubble_rt.estimation.registry import make_estimator
 from bubble_rt.estimation.solver import SolverSettings
+from bubble_rt.io.protocol import PARAM_NAMES
 from bubble_rt.mesh import Mesh
 
 
@@ -218,3 +220,29 @@ def test_untouched_frame_gives_no_force_and_no_contact():
         e = est.estimate(U, float(rng.normal(scale=5.0)))
         assert not e.contact.any()
         assert np.linalg.norm(e.net_force) < 0.05
+
+
+def test_estimator_is_finite_at_every_range_limit():
+    """The ranges keep the solve regular: both ends of each give solved, finite forces."""
+    from bubble_rt.estimation.estimator import ForceEstimator
+    from bubble_rt.estimation.membrane import Material
+    from bubble_rt.mesh import Mesh
+
+    mesh = Mesh.preset("coarse")
+    V = mesh.vertices
+    U = np.zeros_like(V)
+    U[:, 2] = -8e-3 * np.exp(-((np.linalg.norm(V[:, :2] - [0.01, 0.005], axis=1) / 0.015) ** 2))
+    U[mesh.boundary] = 0.0
+    for name in PARAM_NAMES:
+        for v in (ESTIMATOR_RANGES[name].lo, ESTIMATOR_RANGES[name].hi):
+            est = ForceEstimator(mesh)
+            est.reconfigure(
+                **(
+                    {"material": Material(E=v, nu=0.5, thickness=0.65e-3)}
+                    if name == "youngs_modulus"
+                    else {name: v}
+                )
+            )
+            e = est.estimate(U, 320.0)
+            assert e.info.status == "solved", (name, v)
+            assert np.isfinite(e.node_forces).all(), (name, v)

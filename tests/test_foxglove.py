@@ -226,13 +226,15 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
             json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ch["id"]}]})
         )
         cls = message_class("foxglove.SceneUpdate", base64.b64decode(ch["schema"]))
-        while True:
+        # Four scenes sent: the view has written them to the recording too (checked below).
+        scenes = []
+        while len(scenes) < 4:
             op, data = ws.recv()
             if op == 2 and data[0] == 1:  # messageData
                 sub, _log_ns = struct.unpack_from("<IQ", data, 1)
                 assert sub == 7
-                scene = cls.FromString(data[13:])
-                break
+                scenes.append(cls.FromString(data[13:]))
+        scene = scenes[0]
         ws.close()
         # FakeProcessor: 5 interior nodes pushed along -z, in total 1..5 N.
         arrows = {e.id: e for e in scene.entities}["forces"].arrows
@@ -247,7 +249,6 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
         assert {fx.TOPIC_NET_FORCE, fx.TOPIC_TRUE_FORCE, fx.TOPIC_IMAGE, fx.TOPIC_STATUS} <= set(
             channels
         )
-        time.sleep(0.5)
     finally:
         d.stop()
     assert view.error == ""
@@ -279,11 +280,11 @@ def test_live_server_scene_arrows_and_recorded_channels(tmp_path):
 
 
 def test_replay_of_a_bag_at_recorded_pace(tmp_path):
+    from broken_bags import bag_frames
     from bubble_rt.daemon.sources import ReplayCamera
     from bubble_rt.io.bag_writer import write_bag
-    from test_rosbag import small_frames
 
-    frames, cam = small_frames(12)
+    frames, cam = bag_frames(12)
     bag = write_bag(tmp_path / "bag", frames, cam)
     src = ReplayCamera(str(bag), realtime=True)
     assert src.name == "replay:bag"
@@ -309,16 +310,16 @@ def test_replay_of_a_bag_at_recorded_pace(tmp_path):
 def test_serve_flags_foxglove_default_and_bag_replay_options(tmp_path):
     import argparse
 
+    from broken_bags import bag_frames
     from bubble_rt.commands import serve
     from bubble_rt.io.bag_writer import write_bag
-    from test_rosbag import small_frames
 
     parser = argparse.ArgumentParser()
     serve.add_arguments(parser)
     assert parser.parse_args([]).foxglove is None  # off by default
     assert parser.parse_args(["--foxglove"]).foxglove == fx.DEFAULT_ADDRESS
     assert parser.parse_args(["--foxglove", "ws://0.0.0.0:9"]).foxglove == "ws://0.0.0.0:9"
-    frames, cam = small_frames(3)
+    frames, cam = bag_frames(3)
     bag = write_bag(tmp_path / "bag", frames, cam)
     args = parser.parse_args(["--camera", f"replay:{bag}", "--topics", "/bubble_1"])
     src = serve.bag_replay_source(serve.build_config(args), args)

@@ -2,7 +2,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.mesh import PRESET_NODES, Mesh, MeshError, MeshGeometry
+from bubble_rt.mesh import PRESET_NODES, Mesh, MeshError, MeshGeometry, lumped_areas
 
 
 @pytest.mark.parametrize("name", sorted(PRESET_NODES))
@@ -158,6 +158,13 @@ def test_msh_round_trip(tmp_path):
     m = Mesh.preset("coarse")
     m.save(tmp_path / "m.msh")
     assert np.allclose(Mesh.load(tmp_path / "m.msh").vertices, m.vertices)
+
+
+def test_lumped_areas_sum_to_surface_area():
+    mesh = Mesh.preset("coarse")
+    v, t = mesh.vertices, mesh.triangles
+    total = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    np.testing.assert_allclose(lumped_areas(v, t).sum(), total.sum())
 
 
 def test_generated_mesh_is_cached_on_disk_and_equal_to_a_fresh_one(tmp_path, monkeypatch):

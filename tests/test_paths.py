@@ -13,7 +13,7 @@ from bubble_rt._validate import CONFIG_MAX_BYTES, PathError, regular_file
 from bubble_rt.cli import main
 from bubble_rt.config import DaemonConfig
 from bubble_rt.io.recordings import PngRecording, open_recording, write_png_recording
-from test_recordings import png_frames
+from recording_fakes import png_frames
 
 pytestmark = pytest.mark.timeout(20)
 

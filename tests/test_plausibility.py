@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from bubble_rt.frames import Frame
 from bubble_rt.io.recordings import open_recording
 from bubble_rt.sensor import PROFILES
 from sim_recordings import write_punyo
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(300)
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -256,12 +256,16 @@ def test_wrong_camera_pose_daemon_status_says_why(tmp_path):
     )
     d = Daemon(cfg).start()
     try:
-        reason, deadline = "", time.monotonic() + 120
+        seen = {}
         with Controller(d.control_address) as c:
-            while "reference refused" not in reason and time.monotonic() < deadline:
-                st = c.status()
-                reason = st.reason
-                time.sleep(0.2)
+
+            def refused() -> bool:
+                seen["status"] = c.status()
+                return "reference refused" in seen["status"].reason
+
+            assert wait_for(refused, 120)
+        st = seen["status"]
+        reason = st.reason
         assert "reference refused" in reason and "camera pose" in reason, reason
         assert st.state in ("starting", "degraded")
         assert d.frames_published == 0  # never a force from the wrong pose

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.camera import Camera
+from bubble_rt.daemon.sources import ReplayCamera, SourceError
 from bubble_rt.estimation.deformation import Reference
-from bubble_rt.frames import Frame, FrameError
+from bubble_rt.frames import FrameError
 from bubble_rt.io.recordings import (
     PngRecording,
     PunyoRecording,
@@ -17,35 +16,9 @@ from bubble_rt.io.recordings import (
     punyo_pose,
     write_png_recording,
 )
+from recording_fakes import CX, CY, FX, FY, H, W, make_punyo, plane_cloud, png_frames
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "punyo-demo-0"
-H, W = 24, 32
-FX, FY, CX, CY = 40.0, 41.0, 15.2, 11.7
-
-
-def plane_cloud(z0: float) -> np.ndarray:
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    z = z0 + 0.0005 * u
-    return np.dstack([(u - CX) / FX * z, (v - CY) / FY * z, z]).reshape(-1, 3).astype(np.float32)
-
-
-def make_punyo(root: Path, n: int = 3, with_json: bool = True) -> None:
-    exp = root / "expand"
-    exp.mkdir(parents=True)
-    rows = []
-    for i in range(n):
-        rgb = np.zeros((H, W, 3), np.uint8)
-        rgb[..., 0] = 10 * i
-        rgb[..., 1] = 200
-        pc = plane_cloud(0.08 + 0.001 * i)
-        pc[:5] = 0.0  # no reading
-        pc[7, 2] = 6.5535  # saturated
-        np.save(exp / f"rgb_{i}.npy", rgb)
-        np.save(exp / f"pc_{i}.npy", pc)
-        np.save(exp / f"pressure_{i}.npy", np.float64(1065.0 + i))
-        rows.append([1000.0 + i / 30, 1065.0 + i, [0.1] * 6, [0.5, -0.2, 1.0 + i, 0, 0, 0.01]])
-    if with_json:
-        (root / "data.json").write_text(json.dumps(rows))
 
 
 def test_punyo_reader_on_fixture(tmp_path):
@@ -86,19 +59,6 @@ def test_punyo_reader_rejects_gaps(tmp_path):
     (tmp_path / "expand" / "rgb_1.npy").unlink()
     with pytest.raises(FrameError, match="contiguous"):
         open_recording(tmp_path)
-
-
-def png_frames(n: int, wrench: bool) -> tuple[list[Frame], Camera]:
-    cam = Camera(fx=FX, fy=FY, cx=CX, cy=CY, width=W, height=H)
-    rng = np.random.default_rng(0)
-    frames = []
-    for i in range(n):
-        rgb = rng.integers(0, 255, (H, W, 3), dtype=np.uint8)
-        depth = np.full((H, W), 0.0812 + 0.001 * i, np.float32)
-        depth[0, :4] = 0.0
-        w = np.array([0.1 * i, 0, -1.0, 0, 0, 0]) if wrench else None
-        frames.append(Frame(rgb, depth, 106500.0 + i, t=0.5 * i, wrench=w, index=i))
-    return frames, cam
 
 
 def test_png_reader_round_trip(tmp_path):
@@ -180,3 +140,18 @@ def test_real_reference_capture():
     # Averaging five frames: close to each single frame, within sensor noise.
     assert np.median(np.abs(ref.depth[both] - frames[0].depth[both])) < 3e-4
     assert ref.rgb.shape == (480, 640, 3) and ref.rgb.dtype == np.uint8
+
+
+def test_truncated_rgb_0_npy_gives_a_clear_error(tmp_path):
+    """Used to exit with a bare `mmap length is greater than file size` traceback."""
+    root = tmp_path / "rec"
+    make_punyo(root, n=3)
+    f = root / "expand" / "rgb_0.npy"
+    f.write_bytes(f.read_bytes()[:200])
+    with pytest.raises(FrameError, match=r"rgb_0\.npy: unreadable, damaged or truncated"):
+        open_recording(root)
+    with pytest.raises(SourceError, match=r"rgb_0\.npy"):
+        ReplayCamera(str(root))
+    from bubble_rt.cli import main
+
+    assert main(["serve", "--camera", f"replay:{root}", "--duration", "0.1"]) == 1

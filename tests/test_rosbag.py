@@ -17,15 +17,12 @@ from bubble_rt.io.recordings import open_recording
 from bubble_rt.io.rosbag import BagRecording, is_rosbag
 from synth_rgbd import dome_depth, texture
 
-# (the bag fixtures live in broken_bags; small_frames keeps its name for other test files)
-small_frames = bag_frames
-
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 @pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])
 @pytest.mark.parametrize("wrench", [True, False])
 def test_bag_round_trip_frame_for_frame(tmp_path, storage, encoding, wrench):
-    frames, cam = small_frames(wrench=wrench, mm=encoding == "16UC1")
+    frames, cam = bag_frames(wrench=wrench, mm=encoding == "16UC1")
     path = write_bag(
         tmp_path / "bag", frames, cam, storage=storage, depth_encoding=encoding, wrench=wrench
     )
@@ -56,7 +53,7 @@ def test_bag_round_trip_frame_for_frame(tmp_path, storage, encoding, wrench):
 def test_own_mcap_recordings_are_not_bags(tmp_path):
     from bubble_rt.io.mcap import write_recording
 
-    frames, cam = small_frames(2)
+    frames, cam = bag_frames(2)
     p = tmp_path / "run.mcap"
     write_recording(p, frames, cam)
     assert not is_rosbag(p) and not is_rosbag(tmp_path)
@@ -66,7 +63,7 @@ def test_own_mcap_recordings_are_not_bags(tmp_path):
 
 
 def test_pressure_receive_time_and_firmware_delay(tmp_path):
-    frames, cam = small_frames()
+    frames, cam = bag_frames()
     path = write_bag(tmp_path / "bag", frames, cam)
     late = BagRecording(path, pressure_delay_s=0.0)  # ignoring the 10 ms firmware lag
     for f, g in zip(late, frames, strict=True):
@@ -75,7 +72,7 @@ def test_pressure_receive_time_and_firmware_delay(tmp_path):
 
 
 def test_bgr8_colour_and_aligned_depth_and_tf_pose(tmp_path):
-    frames, cam = small_frames(3)
+    frames, cam = bag_frames(3)
     cam = cam.with_pose(np.array([[1, 0, 0, 0.001], [0, 1, 0, 0], [0, 0, 1, -0.07], [0, 0, 0, 1]]))
     path = write_bag(tmp_path / "bag", frames, cam, color_encoding="bgr8", aligned=True, tf=True)
     rec = open_recording(path)
@@ -86,14 +83,14 @@ def test_bgr8_colour_and_aligned_depth_and_tf_pose(tmp_path):
 
 
 def test_depth_unit_setting(tmp_path):
-    frames, cam = small_frames(2, mm=False)
+    frames, cam = bag_frames(2, mm=False)
     path = write_bag(tmp_path / "bag", frames, cam, depth_unit=1e-4)  # a 0.1 mm driver
     rec = open_recording(path, depth_unit=1e-4)
     np.testing.assert_allclose(rec[0].depth, frames[0].depth, atol=6e-5)
 
 
 def test_incomplete_bags_name_what_is_missing(tmp_path):
-    frames, cam = small_frames(2)
+    frames, cam = bag_frames(2)
     p = without(tmp_path, INFO, frames, cam, "noinfo")
     with pytest.raises(FrameError, match=r"info: no sensor_msgs/msg/CameraInfo"):
         open_recording(p)
@@ -189,7 +186,7 @@ def test_estimate_writes_a_bag_read_back_with_rosbags(tmp_path):
 
 
 def test_estimate_bag_errors_are_clear(tmp_path, capsys):
-    frames, cam = small_frames(2)
+    frames, cam = bag_frames(2)
     p = without(tmp_path, PRESSURE, frames, cam, "nopressure")
     assert main(["estimate", str(p), "--json", str(tmp_path / "o.json")]) == 2
     assert "pressure: no std_msgs/msg/Float32" in capsys.readouterr().err

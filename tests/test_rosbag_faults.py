@@ -27,7 +27,9 @@ from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon.sources import SourceError, make_camera_source
 from bubble_rt.io.bag_topics import BagTopicError, choose_topics
 from bubble_rt.io.bag_writer import write_bag
-from test_reliability import start_daemon, status, wait_for
+from daemon_fakes import start_daemon
+from daemon_fakes import status_of as status
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -21,7 +21,8 @@ from bubble_rt.daemon.sim_producer import (
     write_message,
 )
 from bubble_rt.io.client import Subscriber
-from daemon_fakes import free_port, make_frame
+from daemon_fakes import make_frame
+from waiting import ANY_PORT, ServedProcess
 
 pytestmark = pytest.mark.timeout(120)
 TESTS = Path(__file__).resolve().parent
@@ -74,17 +75,15 @@ def _gone(pid: int, timeout: float = 3.0) -> bool:
 
 
 def _serve(*extra: str) -> tuple[subprocess.Popen, str, str]:
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join([str(TESTS)] + [p for p in sys.path if p])
-    proc = subprocess.Popen(
-        [sys.executable, str(TESTS / "daemon_fakes.py"), "--sim", "--pub", pub]
-        + ["--control", ctl, *extra],
+    served = ServedProcess(
+        [sys.executable, str(TESTS / "daemon_fakes.py"), "--sim", "--pub", ANY_PORT]
+        + ["--control", ANY_PORT, *extra],
         env=env,
-        stderr=subprocess.PIPE,
-        text=True,
     )
-    return proc, pub, ctl
+    pub, ctl = served.addresses(60)  # the endpoints it bound (any free port)
+    return served.proc, pub, ctl
 
 
 def _producer_of(proc: subprocess.Popen, pub: str, ctl: str) -> int:
@@ -123,7 +122,7 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
     from bubble_rt.daemon.sim_producer import reference_cache_path
     from bubble_rt.daemon.sources import SimCamera
     from bubble_rt.sim import Simulator
-    from test_sim_truth_publish import TINY_SCENE
+    from sim_recordings import TINY_SCENE
 
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
     scene = tmp_path / "tiny.toml"
@@ -159,7 +158,7 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
 def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_path, monkeypatch):
     from bubble_rt.daemon.sim_producer import pass_cache_path
     from bubble_rt.daemon.sources import SimCamera
-    from test_sim_truth_publish import TINY_SCENE
+    from sim_recordings import TINY_SCENE
 
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
     scene = tmp_path / "tiny.toml"

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 from _sim_fake import FakePhysics, small_scene
 from bubble_rt.sim import cache
 from bubble_rt.sim.simulator import Simulator
+from waiting import wait_for
 
 
 @pytest.fixture(autouse=True)
@@ -47,6 +50,53 @@ def test_physics_is_cached_on_disk_and_keyed_by_content():
     assert fake.calls == 1  # served from the cache
     _ = Simulator(small_scene(frames=4), physics=fake).run
     assert fake.calls == 2
+
+
+def test_physics_progress_counts_up_once_when_two_threads_ask_at_once():
+    """The first run's progress counted backwards (71, 73, 84, 83, ...): the daemon's reference
+    capture and its camera thread each computed the physics and reported their own counts."""
+    fake = FakePhysics()
+    reports: list[tuple[int, int]] = []
+    second_asks = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        reports.append((done, total))
+        if done == 1:  # the other thread asks while the physics is being computed
+            second_asks.wait(10)
+
+    sim = Simulator(small_scene(frames=20), physics=fake, use_cache=False, progress=progress)
+    runs: list = []
+    first = threading.Thread(target=lambda: runs.append(sim.run))
+    first.start()
+    assert wait_for(lambda: reports, 30)
+    second = threading.Thread(target=lambda: (second_asks.set(), runs.append(sim.run)))
+    second.start()
+    first.join(30)
+    second.join(30)
+    assert fake.calls == 1, "the physics was computed once"
+    assert [d for d, _ in reports] == list(range(1, 21)) and {t for _, t in reports} == {20}
+    assert len(runs) == 2 and runs[0] is runs[1]
+
+
+def test_progress_bar_never_counts_back(monkeypatch):
+    import io
+
+    import tqdm
+    from bubble_rt.sim.simulator import progress_bar
+
+    counts: list[int] = []
+
+    class Bar(tqdm.tqdm):  # type: ignore[type-arg]
+        def update(self, n: float | None = 1) -> bool | None:
+            out = super().update(n)
+            counts.append(int(self.n))
+            return out
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    report = progress_bar("physics", file=io.StringIO())
+    for done in (1, 71, 73, 84, 83, 90, 2, 100):  # reports out of order
+        report(done, 100)
+    assert counts == [1, 71, 73, 84, 90, 100]
 
 
 def test_same_scene_and_seed_give_identical_output():

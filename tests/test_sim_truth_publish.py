@@ -15,35 +15,9 @@ from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
 from bubble_rt.io.client import Subscriber
 from daemon_fakes import FakeProcessor, fake_config
+from sim_recordings import TINY_SCENE
 
 pytestmark = pytest.mark.timeout(300)
-
-TINY_SCENE = """
-name = "tiny"
-seed = 0
-frames = 6
-
-[sensor]
-camera = "d405"
-sim_nodes = 500
-
-[rates]
-camera_hz = 30.0
-pressure_hz = 100.0
-
-[indenter]
-preset = "round"
-
-[trajectory]
-loop = true
-keyframes = [
-  { t = 0.0, at = [0.0, 0.0], depth = -0.002 },
-  { t = 0.2, at = [0.0, 0.0], depth = 0.006 },
-]
-
-[effects]
-gas_compression = true
-"""
 
 
 def _frame_msg(n: int = 6, truth: bool = True):  # type: ignore[no-untyped-def]

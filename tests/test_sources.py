@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import (
     ConstantPressure,
     IterableCamera,
@@ -18,6 +21,7 @@ from bubble_rt.daemon.sources import (
     LineError,
     PressureBuffer,
     RealSenseCamera,
+    ReplayCamera,
     SerialPressure,
     SourceError,
     make_camera_source,
@@ -25,18 +29,27 @@ from bubble_rt.daemon.sources import (
     pair_pressure,
     parse_pressure_line,
 )
-from daemon_fakes import FakeSensor, make_frame
+from bubble_rt.io.client import Subscriber
+from bubble_rt.io.mcap import (
+    write_recording,
+)
+from daemon_fakes import (
+    CAM,
+    FakeProcessor,
+    FakeSensor,
+    H,
+    ScriptedCamera,
+    W,
+    fake_config,
+    make_frame,
+    start_daemon,
+    status_of,
+)
+from daemon_fakes import status_of as status
+from recording_fakes import bad_mcap, make_punyo
+from waiting import ANY_PORT, wait_for
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def wait_for(pred, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 # ------------------------------------------------------------------ slots and sync
@@ -199,7 +212,7 @@ def test_serial_good_and_bad_lines_counted(sensor):
 def test_serial_partial_line_reassembled(sensor):
     s, src, _ = sensor
     s.write(b"\n1013")
-    time.sleep(0.1)
+    assert wait_for(lambda: s.unread() == 0)  # the reader holds half a line
     s.write(b".0 hPa\n")
     assert wait_for(lambda: src.stats.received == 1)
     assert src.stats.n_errors == 0
@@ -221,8 +234,7 @@ def test_serial_vanished_port_is_reported_and_reopened(sensor):
     assert "serial port" in src.stats.last_error
     assert src.alive
     s.open()  # the sensor is plugged back in
-    assert wait_for(lambda: src.stats.connected)
-    time.sleep(0.1)
+    assert wait_for(lambda: src.stats.connected)  # opened (and its input flushed) again
     s.write(b"\n1002 hPa\n")
     assert wait_for(lambda: src.stats.received == 2)
     assert buf.at(time.time())[0] == pytest.approx(100200.0)
@@ -360,6 +372,8 @@ class FakeRS:
                 pass
 
             def wait_for_frames(self, timeout_ms):
+                # The device's own pacing (a frame period, a wait that times out): the
+                # sleeps stand for time passing on the camera, not for waiting on a test.
                 if rs.stall:
                     time.sleep(0.01)
                     raise RuntimeError("Frame didn't arrive within 1000")
@@ -457,3 +471,154 @@ def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "bubble_rt.sim", types.SimpleNamespace(Simulator=boom))
     with pytest.raises(SourceError, match="cannot load simulator scene 'nope'"):
         SimCamera("nope")
+
+
+def test_camera_and_serial_pressure_combine(tmp_path):
+    from daemon_fakes import FakeSensor
+
+    sensor = FakeSensor(str(tmp_path / "tty"))
+    cfg = fake_config(**{"pressure.source": f"serial:{sensor.link}", "pressure.reconnect_s": 0.05})
+    from bubble_rt.daemon.sources import make_pressure_source
+
+    cam = ScriptedCamera()
+    pressure = make_pressure_source(cfg.pressure, cam)
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            try:
+                sensor.write(b"1020.00 hPa\n")
+            except OSError:
+                return
+            stop.wait(0.01)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    d = Daemon(cfg, camera=cam, pressure=pressure, processor_factory=FakeProcessor).start()
+    try:
+        assert d.wait_ready(20)
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            f = next(sub.frames(count=1, timeout_s=5))
+        assert f.pressure_pa == pytest.approx(102000.0) and not f.degraded
+        st = status_of(d)
+        assert st.sources[f"serial:{sensor.link}"]["received"] > 0
+    finally:
+        stop.set()
+        d.stop()
+        sensor.vanish()
+
+
+def damage_punyo(root: Path, kind: str) -> str:
+    """Damage frame 1 of a punyo recording; returns the file name the error must name."""
+    exp = root / "expand"
+    if kind == "truncated_npy":
+        data = (exp / "rgb_1.npy").read_bytes()
+        (exp / "rgb_1.npy").write_bytes(data[: len(data) // 2])
+        return "rgb_1.npy"
+    if kind == "garbage_npy":
+        (exp / "pc_1.npy").write_bytes(os.urandom(300))
+        return "pc_1.npy"
+    if kind == "small_image":
+        np.save(exp / "rgb_1.npy", np.zeros((H // 2, W // 2, 3), np.uint8))
+        return "rgb_1.npy"
+    if kind == "float64_image":
+        np.save(exp / "rgb_1.npy", np.zeros((H, W, 3), np.float64))
+        return "rgb_1.npy"
+    if kind == "all_nan_depth":
+        np.save(exp / "pc_1.npy", np.full((H * W, 3), np.nan, np.float32))
+        return "frame 1"
+    if kind == "nan_pressure":
+        np.save(exp / "pressure_1.npy", np.float64("nan"))
+        return "pressure_1.npy"
+    raise AssertionError(kind)
+
+
+BAD_KINDS = [
+    "truncated_npy",
+    "garbage_npy",
+    "small_image",
+    "float64_image",
+    "all_nan_depth",
+    "nan_pressure",
+]
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("kind", BAD_KINDS)
+def test_bad_punyo_frame_is_skipped_counted_and_named(tmp_path, kind):
+    """One bad frame made the replay restart from frame 0 every 0.5 s, even with loop=false."""
+    root = tmp_path / "rec"
+    make_punyo(root, n=5)
+    name = damage_punyo(root, kind)
+    src = ReplayCamera(str(root), realtime=False, loop=False)
+    d = start_daemon(src, **{"camera.pace": "fast", "camera.loop": False})
+    try:
+        assert wait_for(lambda: src.finished.is_set() and d.frames_published >= 1, 20)
+        # Every good frame (4 of 5) went through, and the status says so.
+        assert wait_for(lambda: status(d).sources[src.name]["received"] == 4, 20)
+        st = status(d)
+    finally:
+        d.stop()
+    stats = st.sources[src.name]
+    assert stats["error_counts"] == {"bad_frame": 1}
+    assert name in stats["last_error"] and "frame 1" in stats["last_error"]
+    assert src.stats.received == 4 and len(src.bad_frames) == 1
+
+
+@pytest.mark.timeout(120)
+def test_replay_with_a_bad_frame_never_restarts_from_frame_0(tmp_path):
+    root = tmp_path / "rec"
+    make_punyo(root, n=5)
+    damage_punyo(root, "truncated_npy")
+    src = ReplayCamera(str(root), realtime=True, loop=False)
+    emitted: list[int] = []
+    orig = src.emit
+    src.emit = lambda f: (emitted.append(f.index), orig(f))  # type: ignore[method-assign]
+    src.start()
+    try:
+        assert src.finished.wait(10)
+        # Time is the subject: nothing may be emitted for longer than the old code's 0.5 s
+        # restart period after the end.
+        time.sleep(0.6)
+    finally:
+        src.stop()
+    assert emitted == [0, 2, 3, 4]
+
+
+@pytest.mark.timeout(120)
+def test_bad_mcap_frames_are_skipped_counted_and_named(tmp_path):
+    p = tmp_path / "bad.mcap"
+    bad_mcap(p)
+    src = ReplayCamera(str(p), realtime=False, loop=False)
+    d = start_daemon(src, **{"camera.pace": "fast", "camera.loop": False, "reference.frames": 1})
+    try:
+        assert wait_for(lambda: src.finished.is_set() and d.frames_published >= 3, 20)
+        st = status(d)
+    finally:
+        d.stop()
+    stats = st.sources[src.name]
+    assert stats["error_counts"] == {"bad_frame": 4}
+    bad = list(src.bad_frames)
+    assert [b.split(":")[0] for b in bad] == [f"bad.mcap frame {i}" for i in (1, 2, 3, 4)]
+    assert "cannot reshape array of size 100" in bad[0] and "16 x 12" in bad[1]
+    assert "no valid pixel" in bad[2] and "not finite" in bad[3]
+    assert src.stats.received == 4
+
+
+@pytest.mark.timeout(120)
+def test_mcap_with_the_reference_only_is_reported_and_ends(tmp_path, capsys):
+    """An MCAP cut after its reference frames was accepted and the replay stalled forever."""
+    from bubble_rt.cli import main
+
+    p = tmp_path / "ref_only.mcap"
+    write_recording(p, [], CAM, reference=[make_frame(i) for i in range(3)])
+    with pytest.raises(SourceError, match="no frame to replay after the reference"):
+        ReplayCamera(str(p), realtime=False)
+    args = ["serve", "--camera", f"replay:{p}", "--duration", "30"]
+    net = ["--pub", ANY_PORT, "--control", ANY_PORT]
+    # Refused at start (exit 1): a stalled replay would run out the 30 s duration and exit 0.
+    assert main(args + net) == 1
+    assert "no frame to replay" in capsys.readouterr().err
+    out = tmp_path / "o.json"
+    assert main(["estimate", str(p), "--json", str(out), "--no-progress"]) == 3
+    assert "no frame in the recording" in capsys.readouterr().err and not out.exists()

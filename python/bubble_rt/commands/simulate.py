@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     from bubble_rt._validate import CONFIG_MAX_BYTES, output_file, regular_file
     from bubble_rt.sim.scene import SceneError, load_scene
-    from bubble_rt.sim.simulator import Simulator
+    from bubble_rt.sim.simulator import Simulator, progress_bar
 
     output_file("--output", args.output)
     if Path(args.scene).exists():  # a scene TOML is read whole: a regular file, capped
@@ -111,14 +111,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
         changes["frames"] = args.frames
     scene = scene.with_changes(**changes)
-    bar = tqdm(total=scene.frames, desc="physics", unit="frame", leave=False)
-
-    def progress(done: int, total: int) -> None:
-        bar.update(done - bar.n)
-
-    sim = Simulator(scene, use_cache=not args.no_cache, progress=progress)
+    sim = Simulator(scene, use_cache=not args.no_cache, progress=progress_bar("physics"))
     _ = sim.run
-    bar.close()
     frames = list(tqdm(sim.frames(), total=scene.frames, desc="render", unit="frame"))
     reference = sim.reference_frames(args.reference)
     path = write_recording(args.output, sim, frames, reference, compress=args.compress)

@@ -188,7 +188,7 @@ class Daemon:
                 self.start_recording(cfg.recording.path, cfg.recording.overwrite)
             except ValueError as exc:
                 self._close_sockets()
-                raise DaemonError(f"cannot record: {exc}") from exc
+                raise DaemonError(f"recording.path: cannot record: {exc}") from exc
         cam.start()
         if self._pressure_src is not None:
             self._pressure_src.start()

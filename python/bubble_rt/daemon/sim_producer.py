@@ -510,7 +510,7 @@ class SimProducer:
     # ---------------------------------------------------------------- reading
     def _read(self, proc: subprocess.Popen[bytes]) -> None:
         assert proc.stdout is not None
-        last_step = -1
+        bar: Any = None
         while True:
             try:
                 msg = read_message(proc.stdout)
@@ -522,15 +522,14 @@ class SimProducer:
             header, arrays = msg
             kind = header["kind"]
             if kind == "progress":
-                step = (10 * header["done"]) // max(header["total"], 1)
-                if step != last_step:
-                    last_step = step
+                if bar is None:  # one bar (drawn on a terminal), and a log line
+                    from bubble_rt.sim.simulator import progress_bar
+
                     log.info(
-                        "simulating the physics of scene %r (first run only, cached): %d/%d frames",
-                        self.scene,
-                        header["done"],
-                        header["total"],
+                        "simulating the physics of scene %r (first run only, cached)", self.scene
                     )
+                    bar = progress_bar(f"physics of scene {self.scene!r}")
+                bar(header["done"], header["total"])
             elif kind == "physics":
                 self.preload_truth()
                 if header["cold"]:
@@ -672,4 +671,7 @@ class SimProducer:
 
 
 if __name__ == "__main__":
-    sys.exit(child_main())
+    try:
+        sys.exit(child_main())
+    except BrokenPipeError:  # the daemon is gone (stopped, or failed to start): nobody to tell
+        os._exit(0)

@@ -9,10 +9,11 @@ recomputed per frame (about 20 ms at 640 x 480).
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import IO, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,40 @@ from bubble_rt.sim.trajectory import ReferenceSurface, trajectory_poses
 from bubble_rt.sim.truth import GroundTruth, SurfaceLocator
 
 log = logging.getLogger(__name__)
+
+
+def progress_bar(
+    desc: str, file: IO[str] | None = None, unit: str = "frame"
+) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback for :class:`Simulator` that draws one tqdm bar.
+
+    The bar appears at the first report (a cached physics reports nothing) on ``file`` (default
+    stderr, drawn only on a terminal) and closes when ``done`` reaches ``total``. Its count
+    never goes back: a report below the count already shown is ignored.
+    """
+    from tqdm import tqdm
+
+    lock = threading.Lock()
+    state: dict[str, Any] = {"bar": None}
+
+    def progress(done: int, total: int) -> None:
+        with lock:
+            bar = state["bar"]
+            if bar is None:
+                bar = state["bar"] = tqdm(
+                    total=total,
+                    desc=desc,
+                    unit=unit,
+                    leave=False,
+                    file=file,
+                    disable=None if file is None else False,
+                )
+            if done > bar.n:
+                bar.update(done - bar.n)
+            if done >= total:
+                bar.close()
+
+    return progress
 
 
 class PhysicsBackend(Protocol):
@@ -153,7 +188,8 @@ class Simulator:
         scene: a Scene, a built-in scene name ("demo") or a TOML path.
         physics: the physics backend (default: bubble_rt.sim.physics); tests pass a fake.
         use_cache: read/write physics results in the on-disk cache.
-        progress: called as progress(done, total) while the physics runs.
+        progress: called as progress(done, total) while the physics runs (frames solved so
+            far, frames in all), from the one thread computing it; see :func:`progress_bar`.
     """
 
     def __init__(
@@ -173,6 +209,9 @@ class Simulator:
             cam if s.camera_pose is None else cam.with_pose(np.asarray(s.camera_pose))
         )
         self._run: PhysicsRun | None = None
+        # Taken while the physics is loaded or computed: threads asking for it at once (the
+        # daemon's reference capture and its camera thread) wait for one computation.
+        self._run_lock = threading.Lock()
         self._renderer: Any = None
         self._locator: SurfaceLocator | None = None
         #: Names of the stages that actually ran (tests use it to prove unnamed ones did not).
@@ -186,7 +225,14 @@ class Simulator:
 
     @property
     def run(self) -> PhysicsRun:
-        """The scene's physics, from the cache or computed now (then cached)."""
+        """The scene's physics, from the cache or computed now (then cached); computed once
+        however many threads ask at the same time."""
+        if self._run is not None:
+            return self._run
+        with self._run_lock:
+            return self._load_or_simulate()
+
+    def _load_or_simulate(self) -> PhysicsRun:
         if self._run is None:
             key = self.physics_key()
             cached = cache.load(key) if self.use_cache else None
