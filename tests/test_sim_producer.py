@@ -198,7 +198,7 @@ def test_a_pass_cut_short_by_a_stop_is_never_stored_and_a_partial_one_is_ignored
     would loop over the scene's first frames only (the demo never pressing)."""
     from bubble_rt.daemon.sim_producer import load_pass, pass_cache_path, store_pass
     from bubble_rt.daemon.sources import SimCamera
-    from test_sim_truth_publish import TINY_SCENE
+    from sim_recordings import TINY_SCENE
 
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
     scene = tmp_path / "tiny.toml"
