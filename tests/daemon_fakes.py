@@ -277,7 +277,7 @@ def main() -> None:
     install_signal_handlers(stop)
     camera: IterableCamera = ScriptedCamera()
     if a.sim:
-        from bubble_rt.daemon.sources import SimCamera
+        from bubble_rt.daemon.sim_camera import SimCamera
 
         camera = SimCamera("fake", simulator="daemon_fakes:FakeSimulator")
     d = Daemon(

@@ -24,7 +24,8 @@ from broken_bags import (
 )
 from bubble_rt.cli import main
 from bubble_rt.config import DaemonConfig
-from bubble_rt.daemon.sources import SourceError, make_camera_source
+from bubble_rt.daemon.source_config import make_camera_source
+from bubble_rt.daemon.sources import SourceError
 from bubble_rt.io.bag_topics import BagTopicError, choose_topics
 from bubble_rt.io.bag_writer import write_bag
 from daemon_fakes import start_daemon

@@ -13,21 +13,22 @@ import numpy as np
 import pytest
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig
+from bubble_rt.daemon.devices import (
+    LineError,
+    RealSenseCamera,
+    SerialPressure,
+    parse_pressure_line,
+)
 from bubble_rt.daemon.service import Daemon
+from bubble_rt.daemon.source_config import make_camera_source, make_pressure_source
 from bubble_rt.daemon.sources import (
     ConstantPressure,
     IterableCamera,
     LatestSlot,
-    LineError,
     PressureBuffer,
-    RealSenseCamera,
     ReplayCamera,
-    SerialPressure,
     SourceError,
-    make_camera_source,
-    make_pressure_source,
     pair_pressure,
-    parse_pressure_line,
 )
 from bubble_rt.io.client import Subscriber
 from bubble_rt.io.mcap import (
@@ -446,7 +447,7 @@ def test_camera_factory_realsense():
 
 
 def test_sim_source_loops_with_increasing_indices_and_prerenders():
-    from bubble_rt.daemon.sources import SimCamera
+    from bubble_rt.daemon.sim_camera import SimCamera
 
     cam = SimCamera("demo", lossless=True, simulator="daemon_fakes:FakeSimulator")
     assert [f.index for f in cam.reference_frames(2)] == [-2, -1]
@@ -463,7 +464,7 @@ def test_sim_source_loops_with_increasing_indices_and_prerenders():
 
 
 def test_sim_source_missing_scene_is_a_clear_error(monkeypatch):
-    from bubble_rt.daemon.sources import SimCamera
+    from bubble_rt.daemon.sim_camera import SimCamera
 
     def boom(scene, progress=None):
         raise ValueError("no scene named 'nope'")

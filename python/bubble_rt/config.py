@@ -30,7 +30,7 @@ from bubble_rt._validate import (
 from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
 from bubble_rt.estimation.params import ESTIMATOR_PARAMS, FLOW_SCALE
 from bubble_rt.estimation.registry import estimator_kinds
-from bubble_rt.io.image_codec import COLOR_CODECS
+from bubble_rt.io.codec_names import COLOR_CODECS
 from bubble_rt.sensor import PROFILES, SensorProfile, profile_for_layout
 
 

@@ -40,13 +40,12 @@ from bubble_rt.daemon.processor import (
     ProcessorFactory,
 )
 from bubble_rt.daemon.sim_truth import attach_sim_truth
+from bubble_rt.daemon.source_config import make_camera_source, make_pressure_source
 from bubble_rt.daemon.sources import (
     CameraSource,
     LatestSlot,
     PressureBuffer,
     ThreadedSource,
-    make_camera_source,
-    make_pressure_source,
     pair_pressure,
 )
 from bubble_rt.frames import Frame

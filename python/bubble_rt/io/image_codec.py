@@ -21,14 +21,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bubble_rt.io.codec_names import COLOR_CODECS
 from bubble_rt.proto_gen.bubble_rt.v1 import foxglove_compressed_image_pb2 as _fox_c
 from bubble_rt.proto_gen.bubble_rt.v1 import foxglove_raw_image_pb2 as _fox_r
 
 fox_raw: Any = _fox_r
 fox_compressed: Any = _fox_c
 
-#: Colour encodings of a recording (``recording.color``): lossy first, then lossless.
-COLOR_CODECS: tuple[str, ...] = ("jpeg", "png")
 #: Frame of reference of every image (the camera's optical frame).
 FRAME_ID = "bubble_rt_camera"
 _JPEG_EOI = b"\xff\xd9"
