@@ -479,7 +479,7 @@ def test_camera_and_serial_pressure_combine(tmp_path):
 
     sensor = FakeSensor(str(tmp_path / "tty"))
     cfg = fake_config(**{"pressure.source": f"serial:{sensor.link}", "pressure.reconnect_s": 0.05})
-    from bubble_rt.daemon.sources import make_pressure_source
+    from bubble_rt.daemon.source_config import make_pressure_source
 
     cam = ScriptedCamera()
     pressure = make_pressure_source(cfg.pressure, cam)
