@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from _sim_fake import FakePhysics, small_scene
 from bubble_rt.sim import effects
+from bubble_rt.sim.effect_names import EFFECT_DEFAULTS
 from bubble_rt.sim.indenters import preset
 from bubble_rt.sim.physics import GasSettings, MembraneSim, default_rest_mesh
-from bubble_rt.sim.scene import EFFECT_DEFAULTS, SceneError, parse_scene
+from bubble_rt.sim.scene import SceneError, parse_scene
 from bubble_rt.sim.simulator import Simulator
 
 AWAY = np.diag([1.0, 1.0, 1.0, 1.0])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from _sim_fake import FakePhysics, small_scene
 from bubble_rt.sim import effects
-from bubble_rt.sim.scene import EFFECT_DEFAULTS
+from bubble_rt.sim.effect_names import EFFECT_DEFAULTS
 from bubble_rt.sim.simulator import Simulator
 
 

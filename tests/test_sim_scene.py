@@ -42,7 +42,7 @@ def test_scene_file_path_loads(tmp_path):
 
 def test_effect_parameters_override_defaults():
     s = parse_scene("[effects]\ndepth_noise = { sigma_per_m2 = 0.5 }\n" + BASE)
-    from bubble_rt.sim.scene import EFFECT_DEFAULTS
+    from bubble_rt.sim.effect_names import EFFECT_DEFAULTS
 
     assert s.params("depth_noise") == {**EFFECT_DEFAULTS["depth_noise"], "sigma_per_m2": 0.5}
 

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bubble_rt.sensor import PROFILES
+from bubble_rt.sim.effect_names import EFFECT_DEFAULTS
 from bubble_rt.sim.scene import (
-    EFFECT_DEFAULTS,
     INDENTER_PRESETS,
     IndenterSpec,
     Keyframe,

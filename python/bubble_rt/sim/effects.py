@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bubble_rt.sim import scene
+from bubble_rt.sim.effect_names import GAS_DRIFT_EFFECTS
 
 #: Offset of the sample index used for reference (tare) frames, so they never share a stream
 #: with trajectory frames.
@@ -351,8 +351,6 @@ IMAGE_STAGES: dict[str, tuple[str, Callable[..., Any]]] = {
 }
 #: Image stages that read drift time (scene time times ``rates.time_scale``).
 DRIFT_TIME_STAGES = ("illumination_drift",)
-#: Effects that change the gas of the physics per frame (``gas_scale``).
-GAS_DRIFT_EFFECTS = scene.GAS_DRIFT_EFFECTS
 PRESSURE_STAGES: dict[str, Callable[..., Any]] = {
     "pressure_noise": pressure_noise,
     "pressure_quantization": pressure_quantization,
