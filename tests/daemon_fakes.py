@@ -14,6 +14,8 @@ from bubble_rt.camera import Camera
 from bubble_rt.config import ConfigError, DaemonConfig
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.sources import ConstantPressure, IterableCamera
+from bubble_rt.estimation.solver import SolverInfo
+from bubble_rt.estimation.types import Estimate
 from bubble_rt.frames import Frame
 from bubble_rt.io.client import Controller
 from bubble_rt.mesh import Mesh
@@ -115,12 +117,15 @@ class FakeProcessor:
         f[self.nodes, 2] = -data / len(self.nodes)
         contact = np.zeros(n, bool)
         contact[self.nodes] = True
-        return SimpleNamespace(
+        pressure = np.where(contact, 5000.0, 0.0)
+        return Estimate(
             node_forces=f,
-            normal_pressure=np.where(contact, 5000.0, 0.0),
+            contact_pressure=pressure[:, None] * np.array([0.0, 0.0, 1.0]),
+            normal_pressure=pressure,
             contact=contact,
             net_force=f.sum(axis=0),
-            info=SimpleNamespace(
+            displacements=np.zeros((n, 3)),
+            info=SolverInfo(
                 status="solved",
                 iterations=3,
                 primal_residual=1e-6,
@@ -128,8 +133,10 @@ class FakeProcessor:
                 objective=1.0,
             ),
             timings_ms={"solve": 0.1, "post": 0.01},
-            valid_node_fraction=1.0,
         )
+
+    def cold_start(self) -> None:
+        """Nothing to reset: the fake keeps no solver state."""
 
     def set_reference(self, frames: list[Frame]) -> None:
         self.references += 1

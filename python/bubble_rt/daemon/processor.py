@@ -30,6 +30,9 @@ class Processor(Protocol):
     def reconfigure(self, params: dict[str, float]) -> None:
         """Apply Params (k_f, k_u, youngs_modulus, k_const, k_linear) between frames."""
 
+    def cold_start(self) -> None:
+        """The next solve starts as the first one did (after a reference or a tare)."""
+
 
 ProcessorFactory = Callable[[DaemonConfig, Camera, list[Frame]], Processor]
 

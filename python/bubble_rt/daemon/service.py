@@ -474,73 +474,90 @@ class Daemon:
                 self._finish(item)
 
     def _finish(self, item: _Item) -> None:
+        """Stage two of one frame: solve, then publish its force frame (and record it, and
+        show it to the viewers)."""
         proc = self.processor
         if proc is None or self._patches is None or self.mesh_msg is None:
             return
         item.timings["queue"] = (time.perf_counter() - item.t_stage1_end) * 1e3
         t0 = time.perf_counter()
         try:
-            with self._state_lock:
-                params, self._pending_params = self._pending_params, {}
-            with self._proc_lock:
-                if params:
-                    proc.reconfigure(params)
-                if item.cold and self._cold_next:
-                    self._cold_next = False
-                    if hasattr(proc, "cold_start"):
-                        proc.cold_start()
-                est = proc.stage2(item.frame, item.data)
-            timings = dict(item.timings)
-            for key, v in (getattr(est, "timings_ms", None) or {}).items():
-                timings[key] = float(v)
-            contact = np.asarray(est.contact, dtype=bool)
-            forces = np.asarray(est.node_forces, dtype=np.float64)
-            patches = self._patches.patches(
-                contact,
-                forces,
-                getattr(est, "displacements", None),
-                est.normal_pressure,
-                getattr(est, "support", None),
-            )
-            reasons = list(item.reasons)
-            vf = float(getattr(est, "valid_node_fraction", 1.0))
-            # The pipeline's plausibility checks (inputs and result) join the daemon's own.
-            reasons += list(getattr(est, "degraded_reasons", []))
-            for problem in (
-                faults.solver_problem(getattr(est, "info", None)),
-                faults.forces_problem(forces, est.net_force),
-            ):
-                if problem:
-                    reasons.append(problem)
-            self.rezero.observe(item.frame, contact, est.net_force, reasons, item.displacements)
+            est = self._solve(proc, item)
+            reasons = self._reasons(item, est)
+            self.rezero.observe(item.frame, est.contact, est.net_force, reasons, item.displacements)
+            timings = {**item.timings, **{k: float(v) for k, v in est.timings_ms.items()}}
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
-            dp = getattr(item.data, "dp", None)
-            if dp is None:
-                ref_p = getattr(getattr(proc, "reference", None), "pressure_pa", None)
-                dp = item.frame.pressure_pa - ref_p if ref_p is not None else 0.0
-            msg = protocol.encode_force_frame(
-                sensor_id=self.sensor_id,
-                seq=self.seq,
-                frame_index=item.frame.index,
-                capture_time_ns=int(round(item.frame.t * 1e9)),
-                mesh_id=self.mesh_msg.mesh_id,
-                net_force=est.net_force,
-                node_forces=forces,
-                normal_pressure=est.normal_pressure,
-                contact=contact,
-                patches=patches,
-                pressure_delta_pa=float(dp),
-                pressure_pa=float(item.frame.pressure_pa),
-                timings_ms=timings,
-                solver_info=getattr(est, "info", None),
-                valid_node_fraction=vf,
-                degraded_reasons=reasons,
-                net_torque=self._patches.net_torque(forces),
-            )
-            attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
+            msg = self._force_message(proc, item, est, reasons, timings)
         except Exception as exc:
             self._error("estimator", exc)
             return
+        self._publish(item, msg, reasons, est)
+
+    def _solve(self, proc: Processor, item: _Item) -> Any:
+        """The frame's Estimate, after the parameters queued since the last frame and, after a
+        reference or a tare, a cold start."""
+        with self._state_lock:
+            params, self._pending_params = self._pending_params, {}
+        with self._proc_lock:
+            if params:
+                proc.reconfigure(params)
+            if item.cold and self._cold_next:
+                self._cold_next = False
+                proc.cold_start()
+            return proc.stage2(item.frame, item.data)
+
+    @staticmethod
+    def _reasons(item: _Item, est: Any) -> list[str]:
+        """Why the frame is degraded: the daemon's own reasons, the pipeline's plausibility
+        checks (inputs and result), and the solver's or the forces' problems."""
+        reasons = [*item.reasons, *est.degraded_reasons]
+        for problem in (
+            faults.solver_problem(est.info),
+            faults.forces_problem(np.asarray(est.node_forces, np.float64), est.net_force),
+        ):
+            if problem:
+                reasons.append(problem)
+        return reasons
+
+    def _force_message(
+        self, proc: Processor, item: _Item, est: Any, reasons: list[str], timings: dict
+    ) -> Any:
+        """The ForceFrame of one estimate (``bubble_rt.v1``), with the simulator's truth when
+        the frame is simulated."""
+        assert self._patches is not None and self.mesh_msg is not None
+        contact = np.asarray(est.contact, dtype=bool)
+        forces = np.asarray(est.node_forces, dtype=np.float64)
+        patches = self._patches.patches(
+            contact, forces, est.displacements, est.normal_pressure, est.support
+        )
+        dp = getattr(item.data, "dp", None)  # the tracker's (None: the kind reads frames)
+        if dp is None:
+            ref_p = getattr(getattr(proc, "reference", None), "pressure_pa", None)
+            dp = item.frame.pressure_pa - ref_p if ref_p is not None else 0.0
+        msg = protocol.encode_force_frame(
+            sensor_id=self.sensor_id,
+            seq=self.seq,
+            frame_index=item.frame.index,
+            capture_time_ns=int(round(item.frame.t * 1e9)),
+            mesh_id=self.mesh_msg.mesh_id,
+            net_force=est.net_force,
+            node_forces=forces,
+            normal_pressure=est.normal_pressure,
+            contact=contact,
+            patches=patches,
+            pressure_delta_pa=float(dp),
+            pressure_pa=float(item.frame.pressure_pa),
+            timings_ms=timings,
+            solver_info=est.info,
+            valid_node_fraction=float(est.valid_node_fraction),
+            degraded_reasons=reasons,
+            net_torque=self._patches.net_torque(forces),
+        )
+        attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
+        return msg
+
+    def _publish(self, item: _Item, msg: Any, reasons: list[str], est: Any) -> None:
+        """Stamp and send the frame; count it; record it and show it to the viewers."""
         now = time.time()
         protocol.stamp_publish(msg, time.time_ns())
         with self._pub_lock:
@@ -555,9 +572,7 @@ class Daemon:
         if rec is not None:
             rec.write_force(msg)
         for viewer in self.viewers:
-            viewer.on_frame(
-                item.frame, msg, self.mesh_msg, rec, getattr(est, "displacements", None)
-            )
+            viewer.on_frame(item.frame, msg, self.mesh_msg, rec, est.displacements)
 
     def _send(self, topic: bytes, msg: Any) -> None:
         try:
