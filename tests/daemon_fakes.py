@@ -133,6 +133,7 @@ class FakeProcessor:
                 objective=1.0,
             ),
             timings_ms={"solve": 0.1, "post": 0.01},
+            pressure_delta_pa=float(frame.pressure_pa) - self.reference.pressure_pa,
         )
 
     def cold_start(self) -> None:

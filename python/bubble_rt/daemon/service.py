@@ -530,10 +530,6 @@ class Daemon:
         patches = self._patches.patches(
             contact, forces, est.displacements, est.normal_pressure, est.support
         )
-        dp = getattr(item.data, "dp", None)  # the tracker's (None: the kind reads frames)
-        if dp is None:
-            ref_p = getattr(getattr(proc, "reference", None), "pressure_pa", None)
-            dp = item.frame.pressure_pa - ref_p if ref_p is not None else 0.0
         msg = protocol.encode_force_frame(
             sensor_id=self.sensor_id,
             seq=self.seq,
@@ -545,7 +541,7 @@ class Daemon:
             normal_pressure=est.normal_pressure,
             contact=contact,
             patches=patches,
-            pressure_delta_pa=float(dp),
+            pressure_delta_pa=float(est.pressure_delta_pa),
             pressure_pa=float(item.frame.pressure_pa),
             timings_ms=timings,
             solver_info=est.info,

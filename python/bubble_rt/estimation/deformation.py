@@ -192,6 +192,11 @@ class Reference:
         pressure = float(np.mean([f.pressure_pa for f in frames]))
         return cls(rgb=rgb, depth=depth, pressure_pa=pressure, t=frames[-1].t, n_frames=len(frames))
 
+    def pressure_change(self, frame: Frame) -> float:
+        """dp: the frame's pressure minus this reference's, pascals (the one place it is
+        computed: trackers, and the pipeline for kinds that read frames themselves)."""
+        return float(frame.pressure_pa) - float(self.pressure_pa)
+
 
 @dataclass
 class Deformation:
@@ -337,7 +342,7 @@ class NodeTracker:
 
     def dp(self, frame: Frame) -> float:
         """Pressure change of ``frame`` against the reference, Pa."""
-        return float(frame.pressure_pa) - float(self.reference.pressure_pa)
+        return self.reference.pressure_change(frame)
 
     def finish(
         self, U: NDArray, flags: NDArray, dp: float, timings: dict[str, float], flow: NDArray

@@ -249,12 +249,15 @@ class Pipeline:
     def _solve(self, frame: Frame, deformation: Deformation | None) -> Estimate:
         if deformation is None:
             est: Estimate = self.estimator.process(frame)
+            est.pressure_delta_pa = self.reference.pressure_change(frame)
             return est
         est = self.estimator.estimate(deformation.U, deformation.dp)
-        timings = dict(deformation.timings_ms or {})
-        timings.update(est.timings_ms or {})
+        # The tracker's stages ("flow", "lift") before the estimator's, in one dict.
         return dataclasses.replace(
-            est, timings_ms=timings, valid_node_fraction=float(deformation.valid_fraction)
+            est,
+            timings_ms={**deformation.timings_ms, **est.timings_ms},
+            valid_node_fraction=float(deformation.valid_fraction),
+            pressure_delta_pa=float(deformation.dp),
         )
 
     def process(self, frame: Frame) -> Estimate:

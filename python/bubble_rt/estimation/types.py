@@ -30,6 +30,8 @@ class Estimate:
             for estimators without one).
         degraded_reasons: why the input or the result is implausible
             (:mod:`bubble_rt.estimation.plausibility`); empty for a healthy frame.
+        pressure_delta_pa: the frame's pressure minus the reference's (Pa), as the estimate
+            used it (``Reference.pressure_change``; set by the Pipeline).
     """
 
     node_forces: NDArray[np.float64]
@@ -43,3 +45,4 @@ class Estimate:
     valid_node_fraction: float = 1.0
     support: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     degraded_reasons: list[str] = field(default_factory=list)
+    pressure_delta_pa: float = 0.0
