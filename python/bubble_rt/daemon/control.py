@@ -4,6 +4,7 @@ bad input is refused with a message naming what is wrong, never raised."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 from bubble_rt.config import DaemonConfig, EstimatorSection, param_problem
@@ -120,3 +121,24 @@ def _set_params(d: Daemon, params: dict[str, float]) -> Any:
 
 
 __all__ = ["handle_request", "validate_params"]
+
+
+def reply_frames(frames: list[bytes], handle: Callable[[bytes], Any]) -> list[bytes]:
+    """The ROUTER reply to one received multipart: the sender's envelope and the serialized
+    ControlReply of ``handle`` (a malformed request, or one ``handle`` fails on, gets an
+    error reply: the daemon never dies on a request)."""
+    ident, rest = frames[0], frames[1:]
+    envelope = [ident]
+    if rest and rest[0] == b"":
+        envelope.append(b"")
+        rest = rest[1:]
+    if len(rest) != 1:
+        reply = protocol.error_reply(
+            f"malformed request: expected exactly one message frame, got {len(rest)}"
+        )
+    else:
+        try:
+            reply = handle(rest[0])
+        except Exception as exc:
+            reply = protocol.error_reply(f"internal error: {type(exc).__name__}: {exc}")
+    return [*envelope, reply.SerializeToString()]

@@ -32,7 +32,7 @@ import zmq
 
 from bubble_rt.camera import Camera
 from bubble_rt.config import DaemonConfig, EstimatorSection
-from bubble_rt.daemon import control, faults, health, rezero
+from bubble_rt.daemon import control, faults, health, rezero, startup
 from bubble_rt.daemon.processor import (
     EstimatorProcessor,
     PatchFinder,
@@ -151,13 +151,15 @@ class Daemon:
         if cfg.processing.opencv_threads > 0:
             # Read once when the C++ core loads (its first import happens below or later).
             os.environ.setdefault("OPENCV_FOR_THREADS_NUM", str(cfg.processing.opencv_threads))
-        self._open_mesh()
+        problem = startup.mesh_file_problem(self.config)
+        if problem:
+            raise DaemonError(problem)
         if self._camera_src is None:
             self._camera_src = make_camera_source(cfg.camera)
         cam = self._camera_src
-        self._use_recorded_settings(cam)
+        self.config, self._recorded_mesh = startup.recorded_settings(self.config, cam)
         self.rezero.use_recording(cam.recorded_rezero)
-        self._resolve_profile(cam)
+        self.config = startup.resolve_profile(self.config, cam.layout)
         cfg = self.config
         if self._pressure_arg is None:
             self._pressure_arg = make_pressure_source(cfg.pressure, cam)
@@ -196,53 +198,6 @@ class Daemon:
             self._spawn(self._stage2_loop, "stage2")
         self._spawn(self._control_loop, "control")
         return self
-
-    def _use_recorded_settings(self, cam: Any) -> None:
-        """Replay of this project's MCAP (camera.replay_settings = "recorded"): estimate with
-        what the live run used (estimator, flow, solver and reference settings, calibration,
-        the fitted mesh), so the replay reproduces the live forces."""
-        text = cam.recorded_settings
-        mesh_msg = cam.recorded_mesh
-        if text:
-            import tomllib
-
-            from bubble_rt.config import ConfigError
-
-            try:
-                rec = DaemonConfig.from_dict(tomllib.loads(text))
-            except (ConfigError, tomllib.TOMLDecodeError) as exc:
-                log.warning("replay: the recorded settings are not usable (%s); using ours", exc)
-            else:
-                est = replace(rec.estimator, mesh=self.config.estimator.mesh)
-                self.config = replace(
-                    self.config,
-                    estimator=est,
-                    flow=rec.flow,
-                    solver=rec.solver,
-                    reference=rec.reference,
-                )
-                log.info("replay: estimating with the recording's settings")
-        if mesh_msg is not None and text:
-            from bubble_rt.mesh import Mesh
-
-            m = protocol.decode_mesh(mesh_msg)
-            self._recorded_mesh = Mesh(
-                m.vertices, m.triangles.astype(np.int32), m.boundary.astype(np.int32)
-            )
-
-    def _open_mesh(self) -> None:
-        """Load a mesh file now, so a bad one stops the start instead of every frame."""
-        from bubble_rt.mesh import PRESETS, Mesh
-
-        path = self.config.estimator.mesh
-        if path in PRESETS:
-            return
-        try:
-            Mesh.load(path)
-        except Exception as exc:
-            raise DaemonError(
-                f"estimator.mesh: cannot load {path!r} as a mesh: {type(exc).__name__}: {exc}"
-            ) from exc
 
     def _spawn(self, target: Callable[[], None], name: str) -> None:
         th = threading.Thread(target=target, name=name, daemon=True)
@@ -404,22 +359,10 @@ class Daemon:
             else:
                 self._finish(item)
 
-    def _resolve_profile(self, cam: Any) -> None:
-        """Write the sensor profile's ambient pressure into the configuration (unless it gives
-        one), so that status, recordings and replays carry the value in use."""
-        est = self.config.estimator
-        prof = est.sensor_profile(cam.layout)
-        if not est.ambient_pa:
-            log.info("sensor profile %s: ambient pressure %.0f Pa", prof.name, prof.ambient_pa)
-            est = replace(est, ambient_pa=prof.ambient_pa)
-        # "auto" resolved by the camera's layout: the estimator (its plausibility bounds read
-        # the profile's bubble) is built from the configuration alone.
-        self.config = replace(self.config, estimator=replace(est, profile=prof.name))
-
     def _install_reference(self, frames: list[Frame]) -> None:
         try:
             if self.processor is None:
-                if self._recorded_mesh is not None and _takes_mesh(self._factory):
+                if self._recorded_mesh is not None and startup.takes_mesh(self._factory):
                     factory: Any = self._factory
                     proc = factory(self.config, self.camera, frames, mesh=self._recorded_mesh)
                 else:
@@ -608,22 +551,8 @@ class Daemon:
                     viewer.on_status(msg, self.recorder)
 
     def _answer(self, frames: list[bytes]) -> None:
-        ident, rest = frames[0], frames[1:]
-        envelope = [ident]
-        if rest and rest[0] == b"":
-            envelope.append(b"")
-            rest = rest[1:]
-        if len(rest) != 1:
-            reply = protocol.error_reply(
-                f"malformed request: expected exactly one message frame, got {len(rest)}"
-            )
-        else:
-            try:
-                reply = self.handle_request(rest[0])
-            except Exception as exc:  # the daemon never dies on a request
-                reply = protocol.error_reply(f"internal error: {type(exc).__name__}: {exc}")
         try:
-            self.ctl.send_multipart(envelope + [reply.SerializeToString()], flags=zmq.NOBLOCK)
+            self.ctl.send_multipart(control.reply_frames(frames, self.handle_request), zmq.NOBLOCK)
         except zmq.ZMQError:
             pass
 
@@ -653,15 +582,6 @@ class Daemon:
         self._cold_next = True
         self.rezero.recording_started()
         self.recorder = rec
-
-
-def _takes_mesh(factory: Any) -> bool:
-    import inspect
-
-    try:
-        return "mesh" in inspect.signature(factory).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def run(config: DaemonConfig, stop: threading.Event, **kwargs: Any) -> Daemon:
