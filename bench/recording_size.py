@@ -84,7 +84,7 @@ def record(setting: str, seconds: float, out: Path) -> tuple[list[str], str]:
 
 # Runs the CLI with the colour written as RawImage rgb8 (the layout before this change).
 _RAW_SHIM = (
-    "import sys, bubble_rt.io.mcap as m; from bubble_rt.cli import main; "
+    "import sys, bubble_rt.io.mcap_writer as m; from bubble_rt.cli import main; "
     "m.color_image = lambda rgb, t, codec, q: m.raw_image(rgb, t); "
     "sys.argv = ['bubble-rt'] + sys.argv[1:]; sys.exit(main())"
 )
@@ -172,12 +172,12 @@ def encode_costs(frames: list, step_m: float = 1e-4) -> dict:
 
 def force_difference(png_path: Path, tmp: Path, quality: int) -> dict:
     """bubble-rt estimate on the lossless recording and on its frames with JPEG colour."""
-    from bubble_rt.io import mcap as m
     from bubble_rt.io.mcap import McapRecording
+    from bubble_rt.io.mcap_writer import Recorder
 
     rec = McapRecording(png_path, warn=False)
     jpeg_path = tmp / f"jpeg{quality}.mcap"
-    w = m.Recorder(jpeg_path, rec.camera, queue_size=1 << 30, jpeg_quality=quality)
+    w = Recorder(jpeg_path, rec.camera, queue_size=1 << 30, jpeg_quality=quality)
     w.write_reference(rec.reference_frames(100))
     for f in rec:
         w.write_frame(f)

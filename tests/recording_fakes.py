@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
+from bubble_rt.io.image_codec import raw_image
 from bubble_rt.io.mcap import (
     TOPIC_DEPTH,
     TOPIC_PRESSURE,
     TOPIC_RGB,
-    Recorder,
     iter_messages,
-    raw_image,
 )
+from bubble_rt.io.mcap_writer import Recorder
 from bubble_rt.io.protocol import pb
 from daemon_fakes import CAM, P0, make_frame
 

@@ -87,7 +87,7 @@ def write_punyo(path: Path, frames: list[Frame], camera: Camera) -> Path:
 
 def write_mcap(path: Path, frames: list[Frame], reference: list[Frame], camera: Camera) -> Path:
     """The project's MCAP recording (inputs, wrench channel, reference frames)."""
-    from bubble_rt.io.mcap import write_recording
+    from bubble_rt.io.mcap_writer import write_recording
 
     # Recordings use wall-clock-like times; the simulator's reference frames have t < 0.
     def stamp(fs: list[Frame], t0: float) -> list[Frame]:

@@ -14,7 +14,8 @@ from bubble_rt.daemon.control import validate_params
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
 from bubble_rt.io.client import ControlError, Controller
-from bubble_rt.io.mcap import McapRecording, Recorder, RecordingPathError
+from bubble_rt.io.mcap import McapRecording, RecordingPathError
+from bubble_rt.io.mcap_writer import Recorder
 from daemon_fakes import (
     FakeProcessor,
     ScriptedCamera,

@@ -49,7 +49,7 @@ def test_sim_reference_frames_are_recorded_on_the_daemon_clock(tmp_path):
 
 
 def test_daemon_recording_failure_turns_status_to_error_and_stream_goes_on(monkeypatch, tmp_path):
-    import bubble_rt.io.mcap as mcap_mod
+    import bubble_rt.io.mcap_writer as mcap_mod
 
     monkeypatch.setattr(
         mcap_mod,

@@ -23,10 +23,9 @@ from bubble_rt.io.mcap import (
     TOPIC_PRESSURE,
     TOPIC_RGB,
     McapRecording,
-    Recorder,
     iter_messages,
-    write_recording,
 )
+from bubble_rt.io.mcap_writer import Recorder, write_recording
 from bubble_rt.io.protocol import pb
 
 pytestmark = pytest.mark.timeout(60)

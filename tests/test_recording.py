@@ -19,12 +19,11 @@ from bubble_rt.io.mcap import (
     TOPIC_DEPTH,
     TOPIC_RGB,
     McapRecording,
-    Recorder,
     RecordingWarning,
     iter_messages,
-    write_recording,
 )
 from bubble_rt.io.mcap_scan import McapFileError, ReadReport
+from bubble_rt.io.mcap_writer import Recorder, write_recording
 from daemon_fakes import (
     CAM,
     FakeProcessor,

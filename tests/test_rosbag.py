@@ -51,7 +51,7 @@ def test_bag_round_trip_frame_for_frame(tmp_path, storage, encoding, wrench):
 
 
 def test_own_mcap_recordings_are_not_bags(tmp_path):
-    from bubble_rt.io.mcap import write_recording
+    from bubble_rt.io.mcap_writer import write_recording
 
     frames, cam = bag_frames(2)
     p = tmp_path / "run.mcap"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bubble_rt.daemon.sim_producer import (
+from bubble_rt.daemon.sim_wire import (
     frame_message,
     message_frame,
     read_message,
@@ -119,8 +119,8 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
     import logging
     import threading
 
+    from bubble_rt.daemon.sim_cache import reference_cache_path
     from bubble_rt.daemon.sim_camera import SimCamera
-    from bubble_rt.daemon.sim_producer import reference_cache_path
     from bubble_rt.sim import Simulator
     from sim_recordings import TINY_SCENE
 
@@ -156,8 +156,8 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
 
 
 def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_path, monkeypatch):
+    from bubble_rt.daemon.sim_cache import pass_cache_path
     from bubble_rt.daemon.sim_camera import SimCamera
-    from bubble_rt.daemon.sim_producer import pass_cache_path
     from sim_recordings import TINY_SCENE
 
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
@@ -196,8 +196,8 @@ def test_a_pass_cut_short_by_a_stop_is_never_stored_and_a_partial_one_is_ignored
 ):
     """A daemon stopped mid-pass must not leave a part of a pass in the cache: replayed, it
     would loop over the scene's first frames only (the demo never pressing)."""
+    from bubble_rt.daemon.sim_cache import load_pass, pass_cache_path, store_pass
     from bubble_rt.daemon.sim_camera import SimCamera
-    from bubble_rt.daemon.sim_producer import load_pass, pass_cache_path, store_pass
     from sim_recordings import TINY_SCENE
 
     monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))

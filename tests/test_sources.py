@@ -31,9 +31,7 @@ from bubble_rt.daemon.sources import (
     pair_pressure,
 )
 from bubble_rt.io.client import Subscriber
-from bubble_rt.io.mcap import (
-    write_recording,
-)
+from bubble_rt.io.mcap_writer import write_recording
 from daemon_fakes import (
     CAM,
     FakeProcessor,

@@ -49,13 +49,13 @@ def start_recorder(
     reference: list[Frame],
     overwrite: bool = False,
 ) -> Any:
-    """A running :class:`~bubble_rt.io.mcap.Recorder` (raises RecordingPathError with the
+    """A running :class:`~bubble_rt.io.mcap_writer.Recorder` (raises RecordingPathError with the
     reason: existing file without ``overwrite``, not a regular file, no such folder).
 
     Only a non-blocking open happens here; all writing is on the recorder's own thread, so
     this is safe on the control thread.
     """
-    from bubble_rt.io.mcap import Recorder
+    from bubble_rt.io.mcap_writer import Recorder
 
     rc = config.recording
     rec = Recorder(

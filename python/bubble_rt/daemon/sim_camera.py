@@ -21,7 +21,7 @@ class SimCamera(IterableCamera):
     loops (``index = pass * scene.frames + i``), so frame ``k`` shows scene frame
     ``k % scene.frames``. With ``prerender`` the first pass is kept in memory and later passes
     replay it (the renderer process is then idle); it is also stored in the disk cache
-    (``sim_producer.pass_cache_path``, keyed by the scene and the simulator's code), and later
+    (``sim_cache.pass_cache_path``, keyed by the scene and the simulator's code), and later
     runs replay it from there from their first frame, rendering nothing. ``simulator``: the
     simulator class as ``module:attribute`` (default ``bubble_rt.sim:Simulator``; tests name a
     fake). ``stop`` ends the renderer process too.
@@ -41,6 +41,7 @@ class SimCamera(IterableCamera):
         prerender: bool = True,
         simulator: str | None = None,
     ) -> None:
+        from bubble_rt.daemon import sim_cache
         from bubble_rt.daemon import sim_producer as sp
 
         path = simulator or sp.DEFAULT_SIMULATOR
@@ -53,9 +54,11 @@ class SimCamera(IterableCamera):
             scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
         )
         # With prerender, a pass rendered by an earlier run is read from the disk cache.
-        self._pass_path = sp.pass_cache_path(sim) if prerender else None
+        self._pass_path = sim_cache.pass_cache_path(sim) if prerender else None
         self.cached_pass = (
-            None if self._pass_path is None else sp.load_pass(self._pass_path, self._n_frames)
+            None
+            if self._pass_path is None
+            else sim_cache.load_pass(self._pass_path, self._n_frames)
         )
         self._prerender = prerender
         self._pass_frames: list[Frame] = []
@@ -79,7 +82,7 @@ class SimCamera(IterableCamera):
     def _frames_of_next_pass(self) -> Iterator[Frame]:
         """One pass over the scene: from the disk cache, the pass kept in memory, or the
         renderer (kept, and stored to disk once complete, with ``prerender``)."""
-        from bubble_rt.daemon import sim_producer as sp
+        from bubble_rt.daemon import sim_cache
 
         offset = self._passes * self._n_frames
         self._passes += 1
@@ -102,7 +105,7 @@ class SimCamera(IterableCamera):
         self._complete = self._prerender and len(self._pass_frames) == self._n_frames
         if self._complete and self._pass_path is not None:  # the next runs read it from disk
             threading.Thread(
-                target=sp.store_pass,
+                target=sim_cache.store_pass,
                 args=(self._pass_path, list(self._pass_frames)),
                 name="sim-pass-cache",
                 daemon=True,

@@ -41,11 +41,12 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
+from bubble_rt.daemon.sim_cache import load_reference, reference_cache_path, store_reference
+from bubble_rt.daemon.sim_wire import frame_message, message_frame, read_message, write_message
 from bubble_rt.frames import Frame
 
 log = logging.getLogger("bubble_rt.daemon.sources")
@@ -55,68 +56,12 @@ DEFAULT_SIMULATOR = "bubble_rt.sim:Simulator"
 #: Frames the parent holds ahead of the camera's pacing when it does not keep the whole pass.
 AHEAD_FRAMES = 8
 _F_SETPIPE_SZ = 1031  # Linux fcntl: a 1 MB pipe moves a frame in 3 writes instead of 33
-_FRAME_ARRAYS = ("rgb", "depth", "wrench")
-_FRAME_SCALARS = ("pressure_pa", "t", "t_pressure", "index")
 
 
 def load_simulator_class(path: str) -> Any:
     """The class named ``module:attribute``."""
     module, _, attr = path.partition(":")
     return getattr(importlib.import_module(module), attr)
-
-
-# ------------------------------------------------------------------------------ wire format
-def write_message(
-    out: IO[bytes], kind: str, arrays: dict[str, Any] | None = None, **fields: Any
-) -> None:
-    """One message: a JSON header line, then the raw bytes of ``arrays`` (None ones omitted)."""
-    present = {k: np.ascontiguousarray(v) for k, v in (arrays or {}).items() if v is not None}
-    header = dict(fields, kind=kind)
-    header["arrays"] = [[k, a.dtype.str, list(a.shape)] for k, a in present.items()]
-    out.write(json.dumps(header).encode() + b"\n")
-    for a in present.values():
-        out.write(a.reshape(-1).view(np.uint8).data)
-    out.flush()
-
-
-def read_message(inp: IO[bytes]) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
-    """The next message (header, arrays), or None at the end of the stream."""
-    line = inp.readline()
-    if not line:
-        return None
-    header = json.loads(line)
-    arrays = {}
-    for name, dtype, shape in header.pop("arrays"):
-        a = np.empty(shape, dtype=np.dtype(dtype))
-        view = a.reshape(-1).view(np.uint8).data
-        got = 0
-        while got < a.nbytes:  # readinto may return short counts on a pipe
-            n = inp.readinto(view[got:])  # type: ignore[attr-defined]
-            if not n:
-                return None
-            got += n
-        arrays[name] = a
-    return header, arrays
-
-
-def frame_message(frame: Frame) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(fields, arrays) carrying ``frame`` without its truth (rebuilt by the parent)."""
-    fields = {k: getattr(frame, k) for k in _FRAME_SCALARS}
-    fields["meta"] = {
-        k: v for k, v in frame.meta.items() if isinstance(v, str | int | float | bool)
-    }
-    return fields, {k: getattr(frame, k) for k in _FRAME_ARRAYS}
-
-
-def message_frame(header: dict[str, Any], arrays: dict[str, np.ndarray], truth: Any) -> Frame:
-    return Frame(
-        rgb=arrays.get("rgb"),
-        depth=arrays.get("depth"),
-        wrench=arrays.get("wrench"),
-        truth=truth,
-        meta=dict(header["meta"]),
-        **{k: header[k] for k in _FRAME_SCALARS},
-    )
 
 
 # ------------------------------------------------------------------------------ child
@@ -273,130 +218,6 @@ class ProducedTruth:
         if self._index is None or not np.any(self._get().contact):
             return np.zeros(len(mesh.vertices), bool)  # no contact anywhere: nothing to derive
         return self._producer.contact_mask(self._index, mesh)
-
-
-# ------------------------------------------------------------------------------ reference cache
-def _render_key(sim: Any, what: str, n: int) -> str | None:
-    """A key for frames ``sim`` rendered, or None (a simulator without a scene description,
-    e.g. a test fake). It hashes the scene (seed, sensor, effects, ...), ``what`` and ``n``,
-    the simulator's code (every ``bubble_rt/sim`` module and the C++ core the renderer calls)
-    and the versions: rendering them again gives the same bytes."""
-    import dataclasses
-
-    import bubble_rt
-    from bubble_rt import _diskcache
-
-    scene = getattr(sim, "scene", None)
-    if not dataclasses.is_dataclass(scene) or isinstance(scene, type):
-        return None
-    pkg = Path(bubble_rt.__file__).parent
-    code = tuple(sorted((pkg / "sim").glob("*.py"))) + tuple(sorted(pkg.glob("_core*.so")))
-    described = json.dumps(dataclasses.asdict(scene), sort_keys=True, default=str)
-    return _diskcache.source_key(
-        what, described, n, bubble_rt.__version__, np.__version__, files=code
-    )
-
-
-def reference_cache_path(sim: Any, n: int) -> Path | None:
-    """Where ``n`` rendered reference frames of ``sim``'s scene are kept (about 2 MB a frame),
-    or None (see ``_render_key``)."""
-    from bubble_rt import _diskcache
-
-    key = _render_key(sim, "sim-reference", n)
-    return None if key is None else _diskcache.cache_dir() / f"simref-{key}.npz"
-
-
-def pass_cache_path(sim: Any) -> Path | None:
-    """The folder where one rendered pass of ``sim``'s scene is kept (``rgb.npy``,
-    ``depth.npy``, ``fields.json``; about 2 MB a frame, 260 MB for the 120-frame demo), or
-    None (see ``_render_key``)."""
-    from bubble_rt import _diskcache
-
-    key = _render_key(sim, "sim-pass", int(sim.scene.frames) if hasattr(sim, "scene") else 0)
-    return None if key is None else _diskcache.cache_dir() / f"simpass-{key}"
-
-
-def load_pass(
-    path: Path, n_frames: int
-) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
-    """A cached pass as (fields, arrays) per frame, the images memory-mapped from the files
-    (read as the frames are used, copy-on-write), or None when absent, unreadable or not the
-    scene's whole pass of ``n_frames`` frames."""
-    try:
-        fields = json.loads((path / "fields.json").read_text())
-        rgb = np.load(path / "rgb.npy", mmap_mode="c")
-        depth = np.load(path / "depth.npy", mmap_mode="c")
-        if not (len(rgb) == len(depth) == len(fields) == n_frames):
-            return None
-        return [(f, {"rgb": rgb[k], "depth": depth[k]}) for k, f in enumerate(fields)]
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def store_pass(path: Path, frames: list[Frame]) -> None:
-    """Keep one rendered pass (frames with rgb and depth) for the next runs; written into a
-    temporary folder renamed into place, so a reader never sees half of it."""
-    import shutil
-    import tempfile
-
-    if not frames or any(f.rgb is None or f.depth is None for f in frames) or path.exists():
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, suffix=".tmp"))
-    try:
-        for name in ("rgb", "depth"):
-            first = getattr(frames[0], name)
-            out = np.lib.format.open_memmap(
-                tmp / f"{name}.npy",
-                mode="w+",
-                dtype=first.dtype,
-                shape=(len(frames),) + first.shape,
-            )
-            for k, f in enumerate(frames):
-                out[k] = getattr(f, name)
-            out.flush()
-            del out
-        (tmp / "fields.json").write_text(json.dumps([frame_message(f)[0] for f in frames]))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # not cached (disk full, read-only, or another run stored it first)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def load_reference(path: Path) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]] | None:
-    """The cached reference frames as (fields, arrays) messages, or None."""
-    from bubble_rt import _diskcache
-
-    got = _diskcache.load(path)
-    if got is None:
-        return None
-    try:
-        fields = json.loads(bytes(got["fields"]).decode())
-        out = []
-        for k, f in enumerate(fields):
-            arrays = {a: got[a][k] for a in _FRAME_ARRAYS if a in got}
-            out.append((f, arrays))
-        return out
-    except (KeyError, ValueError, IndexError):
-        return None
-
-
-def store_reference(path: Path, frames: list[Frame]) -> None:
-    """Keep rendered reference frames (all with the same array fields) for the next start."""
-    from bubble_rt import _diskcache
-
-    msgs = [frame_message(f) for f in frames]
-    arrays = {
-        a: np.stack([m[1][a] for m in msgs])
-        for a in _FRAME_ARRAYS
-        if all(m[1][a] is not None for m in msgs)
-    }
-    arrays["fields"] = np.frombuffer(json.dumps([m[0] for m in msgs]).encode(), dtype=np.uint8)
-    try:
-        _diskcache.store(path, arrays)
-    except OSError:
-        pass  # not cached: the next start renders them again
 
 
 class SimProducer:
@@ -627,8 +448,8 @@ class SimProducer:
     # ---------------------------------------------------------------- requests
     def reference_frames(self, n: int, stop: threading.Event) -> list[Frame] | None:
         """``n`` reference frames (None when ``stop`` was set first): from the on-disk cache
-        (:func:`reference_cache_path`) when rendered before, else rendered by the child (and
-        then cached)."""
+        (:func:`~bubble_rt.daemon.sim_cache.reference_cache_path`) when rendered before, else
+        rendered by the child (and then cached)."""
         self.start()
         path = reference_cache_path(self.sim, n)
         cached = None if path is None else load_reference(path)

@@ -104,7 +104,7 @@ STATUS_SCHEMA = {
 @dataclass
 class Encoded:
     """One serialised message with its schema: what both the WebSocket channel and the MCAP
-    recorder need (``SerializeToString`` lets :class:`bubble_rt.io.mcap.Recorder` take it)."""
+    recorder need (``SerializeToString`` lets :class:`bubble_rt.io.mcap_writer.Recorder` take it)."""
 
     topic: str
     schema_name: str
