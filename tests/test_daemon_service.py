@@ -144,7 +144,7 @@ def test_frames_replaced_before_the_reference_are_not_drops():
     try:
         assert d.frames_dropped == 0
         assert d.wait_ready(20.0)
-        assert d._drops_before_reference >= 30  # the frames were replaced
+        assert d.vitals.drops_before_reference >= 30  # the frames were replaced
         with Subscriber(d.pub_address, d.control_address) as sub:
             assert len(list(sub.frames(count=10, timeout_s=5))) == 10
         assert d.frames_dropped < 15

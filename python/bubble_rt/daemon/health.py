@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -13,6 +14,25 @@ from bubble_rt.config import DaemonConfig
 from bubble_rt.daemon import faults
 from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
+
+
+@dataclass
+class Vitals:
+    """What the daemon's threads record for its health and status, shared through one object
+    (times are ``time.time()`` seconds)."""
+
+    #: When the daemon started, and when stage one last took a camera frame.
+    started_at: float = 0.0
+    last_frame_time: float = 0.0
+    #: The last degraded frame's time and reasons.
+    last_degraded: tuple[float, list[str]] = (0.0, [])
+    #: End-to-end latencies (ms) and publish times of the last published frames.
+    latencies: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+    publish_times: deque[float] = field(default_factory=lambda: deque(maxlen=600))
+    #: A recording failure already counted among the errors (counted once per recording).
+    recording_fault_counted: bool = False
+    #: Frames replaced before the first reference was installed (not drops: see frames_dropped).
+    drops_before_reference: int = 0
 
 
 class Daemon(Protocol):
@@ -32,13 +52,7 @@ class Daemon(Protocol):
     _mid: Any
     _collecting: list[Any]
     _tare_requested: bool
-    _last_frame_time: float
-    _last_degraded: tuple[float, list[str]]
-    _started_at: float
-    _latencies: deque[float]
-    _publish_times: deque[float]
-    _recording_fault_counted: bool
-    _drops_before_reference: int
+    vitals: Vitals
     rezero: Any
 
     def _error(self, kind: str, exc: BaseException | str) -> None: ...
@@ -57,7 +71,7 @@ def frames_dropped(d: Daemon) -> int:
     the reference was captured and the estimator built are not drops)."""
     if d.processor is None:
         return 0
-    return raw_drops(d) - d._drops_before_reference
+    return raw_drops(d) - d.vitals.drops_before_reference
 
 
 def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
@@ -65,7 +79,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
     now = time.time() if now is None else now
     cam = d._camera_src
     stall = d.config.camera.stall_timeout_s
-    last = d._last_frame_time or d._started_at
+    last = d.vitals.last_frame_time or d.vitals.started_at
     cam_reason = ""
     if now - last > stall:
         cam_reason = f"camera stalled: no frame for {now - last:.1f} s"
@@ -87,8 +101,8 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
         return pb.Status.DEGRADED, cam_reason
     rec = d.recorder
     if rec is not None and rec.failed:
-        if not d._recording_fault_counted:
-            d._recording_fault_counted = True
+        if not d.vitals.recording_fault_counted:
+            d.vitals.recording_fault_counted = True
             d._error("recording", rec.failed)
         return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
     bad = faults.bad_frame_reason(cam, now)
@@ -103,7 +117,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
         return pb.Status.STARTING, reason
     if d._tare_requested:
         return pb.Status.DEGRADED, "taring: capturing a new reference"
-    t_deg, reasons = d._last_degraded
+    t_deg, reasons = d.vitals.last_degraded
     if reasons and now - t_deg < 1.0:
         return pb.Status.DEGRADED, "; ".join(reasons)
     if d.last_error and now - d.last_error_time < 2.0:
@@ -127,7 +141,7 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
     """The Status message of daemon ``d`` now (``stopped``: the final STOPPED one)."""
     now = time.time()
     st, reason = (pb.Status.STOPPED, "shut down") if stopped else state(d, now)
-    recent = [t for t in list(d._publish_times) if now - t < 5.0]
+    recent = [t for t in list(d.vitals.publish_times) if now - t < 5.0]
     rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 2 else 0.0
     rec = d.recorder
     recording, recording_error, recording_dropped = faults.recording_state(rec)
@@ -145,13 +159,13 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         recording_error=recording_error,
         recording_dropped=recording_dropped,
         mesh_id=d.mesh_msg.mesh_id if d.mesh_msg is not None else "",
-        uptime_s=now - d._started_at,
+        uptime_s=now - d.vitals.started_at,
         auto_zero=d.rezero.enabled,
         drift_pa=d.rezero.drift_pa,
         last_rezero_ns=d.rezero.last_ns,
         rezero_count=d.rezero.count,
     )
-    lat = np.asarray(list(d._latencies)[-300:])
+    lat = np.asarray(list(d.vitals.latencies)[-300:])
     if lat.size:
         p50, p90, p99 = np.percentile(lat, [50, 90, 99])
         msg.latency.p50_ms, msg.latency.p90_ms = float(p50), float(p90)

@@ -22,7 +22,6 @@ import logging
 import os
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -122,9 +121,7 @@ class Daemon:
         #: Recording just started: its first solved frame starts the solver cold, so the
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
-        self._recording_fault_counted = False
         #: ``health.raw_drops`` when the first reference was installed (not counted as drops).
-        self._drops_before_reference = 0
         #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
         #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
@@ -134,11 +131,8 @@ class Daemon:
         self._error_logged: dict[str, float] = {}
         self.last_error = ""
         self.last_error_time = 0.0
-        self._latencies: deque[float] = deque(maxlen=2000)
-        self._publish_times: deque[float] = deque(maxlen=600)
-        self._last_frame_time = 0.0
-        self._last_degraded: tuple[float, list[str]] = (0.0, [])
-        self._started_at = 0.0
+        #: What the threads record for the daemon's health and status (health.Vitals).
+        self.vitals = health.Vitals()
         self._last_state: tuple[int, str] | None = None
         self.ctx: zmq.Context | None = None
         #: Following the drift while untouched (bubble_rt.daemon.rezero).
@@ -147,7 +141,7 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
         cfg = self.config
-        self._started_at = time.time()
+        self.vitals.started_at = time.time()
         if cfg.processing.opencv_threads > 0:
             # Read once when the C++ core loads (its first import happens below or later).
             os.environ.setdefault("OPENCV_FOR_THREADS_NUM", str(cfg.processing.opencv_threads))
@@ -323,7 +317,7 @@ class Daemon:
             if frame is None:
                 continue
             t_take = time.time()
-            self._last_frame_time = t_take
+            self.vitals.last_frame_time = t_take
             try:
                 frame, reasons = pair_pressure(
                     frame, self.pressure_buffer, cfg.pressure.stale_timeout_s
@@ -376,7 +370,7 @@ class Daemon:
                     mesh.boundary,
                     self._patches.areas,
                 )
-                self._drops_before_reference = health.raw_drops(self)
+                self.vitals.drops_before_reference = health.raw_drops(self)
                 self.processor = proc
                 if self.recorder is not None:
                     self.recorder.write_message(TOPIC_MESH, self.mesh_msg)
@@ -503,10 +497,10 @@ class Daemon:
             self._send(protocol.force_topic(self.sensor_id), msg)
         self.seq += 1
         self.frames_published += 1
-        self._latencies.append(msg.latency_ms)
-        self._publish_times.append(now)
+        self.vitals.latencies.append(msg.latency_ms)
+        self.vitals.publish_times.append(now)
         if reasons:
-            self._last_degraded = (now, reasons)
+            self.vitals.last_degraded = (now, reasons)
         rec = self.recorder if item.recorder is self.recorder else None
         if rec is not None:
             rec.write_force(msg)
@@ -578,7 +572,7 @@ class Daemon:
         rec = faults.start_recorder(
             path, self.config, self.camera, self.mesh_msg, self._ref_frames, overwrite
         )
-        self._recording_fault_counted = False
+        self.vitals.recording_fault_counted = False
         self._cold_next = True
         self.rezero.recording_started()
         self.recorder = rec
