@@ -170,8 +170,8 @@ def test_status_counts_faults_per_kind():
     try:
         cam.fail_next.set()
         assert wait_for(lambda: cam.stats.errors.get("disconnected") == 1)
-        d._error("estimator", "boom")
-        d._error("estimator", "boom")
+        d.report_error("estimator", "boom")
+        d.report_error("estimator", "boom")
         st = status(d)
     finally:
         d.stop()

@@ -13,7 +13,7 @@ from bubble_rt.io import protocol
 from bubble_rt.io.protocol import pb
 
 
-class Daemon(Protocol):
+class Controlled(Protocol):
     """What the requests need from the daemon (``bubble_rt.daemon.service.Daemon``)."""
 
     config: DaemonConfig
@@ -56,7 +56,7 @@ def validate_params(
     return None
 
 
-def handle_request(d: Daemon, payload: bytes) -> Any:
+def handle_request(d: Controlled, payload: bytes) -> Any:
     """Answer one serialized ControlRequest for daemon ``d`` (never raises for bad input)."""
     try:
         kind, req = protocol.parse_request(payload)
@@ -106,7 +106,7 @@ def handle_request(d: Daemon, payload: bytes) -> Any:
     return protocol.error_reply(f"unknown request {kind!r}")  # pragma: no cover
 
 
-def _set_params(d: Daemon, params: dict[str, float]) -> Any:
+def _set_params(d: Controlled, params: dict[str, float]) -> Any:
     from bubble_rt.estimation.registry import estimator_kind
 
     # The kind cannot change while running: the config's kind is the running estimator's.

@@ -35,8 +35,9 @@ class Vitals:
     drops_before_reference: int = 0
 
 
-class Daemon(Protocol):
-    """The daemon state health reads (``bubble_rt.daemon.service.Daemon``)."""
+class Observed(Protocol):
+    """What health reads of the daemon (``bubble_rt.daemon.service.Daemon``): its public
+    state and its ``vitals``."""
 
     config: DaemonConfig
     sensor_id: str
@@ -47,25 +48,35 @@ class Daemon(Protocol):
     errors: dict[str, int]
     last_error: str
     last_error_time: float
-    _camera_src: Any
-    _pressure_src: Any
-    _mid: Any
-    _collecting: list[Any]
-    _tare_requested: bool
     vitals: Vitals
     rezero: Any
 
-    def _error(self, kind: str, exc: BaseException | str) -> None: ...
+    @property
+    def camera_source(self) -> Any: ...
+
+    @property
+    def pressure_source(self) -> Any: ...
+
+    @property
+    def stage_queue(self) -> Any: ...
+
+    @property
+    def reference_collected(self) -> list[Any]: ...
+
+    @property
+    def tare_pending(self) -> bool: ...
+
+    def report_error(self, kind: str, exc: BaseException | str) -> None: ...
 
 
-def raw_drops(d: Daemon) -> int:
+def raw_drops(d: Observed) -> int:
     """Camera frames replaced before stage one took them, plus stage-one results replaced
     before stage two took them, since the daemon started."""
-    cam_drops = d._camera_src.output.dropped if d._camera_src is not None else 0
-    return cam_drops + d._mid.dropped
+    cam_drops = d.camera_source.output.dropped if d.camera_source is not None else 0
+    return cam_drops + d.stage_queue.dropped
 
 
-def frames_dropped(d: Daemon) -> int:
+def frames_dropped(d: Observed) -> int:
     """Frames the estimator could have processed but never did because a newer one arrived
     first: ``raw_drops`` after the first reference was installed (the frames replaced while
     the reference was captured and the estimator built are not drops)."""
@@ -74,10 +85,10 @@ def frames_dropped(d: Daemon) -> int:
     return raw_drops(d) - d.vitals.drops_before_reference
 
 
-def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
+def state(d: Observed, now: float | None = None) -> tuple[int, str]:
     """(Status.State value, reason) of daemon ``d``."""
     now = time.time() if now is None else now
-    cam = d._camera_src
+    cam = d.camera_source
     stall = d.config.camera.stall_timeout_s
     last = d.vitals.last_frame_time or d.vitals.started_at
     cam_reason = ""
@@ -91,7 +102,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
     if d.processor is None:
         if failing:
             return pb.Status.DEGRADED, failing
-        reason = f"capturing reference ({len(d._collecting)}/{d.config.reference.frames})"
+        reason = f"capturing reference ({len(d.reference_collected)}/{d.config.reference.frames})"
         if d.last_error and now - d.last_error_time < 5.0:
             reason += f"; {d.last_error}"
         if cam_reason:
@@ -103,7 +114,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
     if rec is not None and rec.failed:
         if not d.vitals.recording_fault_counted:
             d.vitals.recording_fault_counted = True
-            d._error("recording", rec.failed)
+            d.report_error("recording", rec.failed)
         return pb.Status.DEGRADED, f"recording failed: {rec.failed}"
     bad = faults.bad_frame_reason(cam, now)
     if bad:
@@ -115,7 +126,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
         if d.last_error:
             reason += f"; {d.last_error}"
         return pb.Status.STARTING, reason
-    if d._tare_requested:
+    if d.tare_pending:
         return pb.Status.DEGRADED, "taring: capturing a new reference"
     t_deg, reasons = d.vitals.last_degraded
     if reasons and now - t_deg < 1.0:
@@ -129,7 +140,7 @@ def state(d: Daemon, now: float | None = None) -> tuple[int, str]:
 FAILING_AFTER = 3
 
 
-def _failing(d: Daemon, now: float) -> str:
+def _failing(d: Observed, now: float) -> str:
     """The reason a daemon that cannot produce frames gives (keeps failing), else ""."""
     n = sum(d.errors.values())
     if n < FAILING_AFTER or not d.last_error or now - d.last_error_time > 5.0:
@@ -137,7 +148,7 @@ def _failing(d: Daemon, now: float) -> str:
     return f"cannot produce frames: {d.last_error} ({n} errors so far)"
 
 
-def status_message(d: Daemon, stopped: bool = False) -> Any:
+def status_message(d: Observed, stopped: bool = False) -> Any:
     """The Status message of daemon ``d`` now (``stopped``: the final STOPPED one)."""
     now = time.time()
     st, reason = (pb.Status.STOPPED, "shut down") if stopped else state(d, now)
@@ -170,7 +181,7 @@ def status_message(d: Daemon, stopped: bool = False) -> Any:
         p50, p90, p99 = np.percentile(lat, [50, 90, 99])
         msg.latency.p50_ms, msg.latency.p90_ms = float(p50), float(p90)
         msg.latency.p99_ms, msg.latency.max_ms = float(p99), float(lat.max())
-    srcs = [d._camera_src] + ([d._pressure_src] if d._pressure_src else [])
+    srcs = [d.camera_source] + ([d.pressure_source] if d.pressure_source else [])
     for s in srcs:
         if s is not None:
             faults.add_source_stats(msg, s.stats, now)

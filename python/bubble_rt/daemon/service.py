@@ -4,13 +4,12 @@ Threads (all daemon threads, all loops bounded by timeouts so shutdown takes < 2
 
 * capture: one per source (``bubble_rt.daemon.sources``), feeding a one-item latest-value slot
   (camera) or a pressure ring buffer;
-* stage 1: takes the newest camera frame, pairs it with the pressure interpolated at its
-  capture time, captures the reference (first K frames, and again on ``tare``) and tracks
-  the membrane deformation (optical flow + lifting, C++ without the GIL);
-* stage 2: solves for the forces (C++ ADMM without the GIL), derives contact patches and
-  publishes the ForceFrame, so the flow of frame k+1 overlaps the solve of frame k;
-* control: answers ControlRequests on a ROUTER socket (``bubble_rt.daemon.control``) and
-  publishes Status periodically (``bubble_rt.daemon.health``).
+* stage 1: the newest camera frame, with the pressure at its capture time: the reference
+  (first K frames, and on ``tare``), then the deformation (flow + lifting, C++, no GIL);
+* stage 2: the forces (C++ ADMM, no GIL), contact patches, the published ForceFrame, so the
+  flow of frame k+1 overlaps the solve of frame k;
+* control: ControlRequests on a ROUTER socket (``bubble_rt.daemon.control``), and the Status
+  published periodically (``bubble_rt.daemon.health``).
 
 Frames that arrive while a stage is busy replace older unprocessed ones (counted as drops):
 the daemon always works on the newest data and its latency never builds up.
@@ -66,8 +65,7 @@ class _Item:
     t_stage1_end: float = 0.0
     #: Solve this frame from a cold start (first frame of a recording).
     cold: bool = False
-    #: The recorder this frame's input was written to: only its forces go into that file, so
-    #: a recording started mid-run holds no force whose input it lacks (replay reproduces it).
+    #: The recorder that got this frame's input: only it gets the forces (so a replay does).
     recorder: Any = None
     #: The frame's node displacements from the tare's mesh (N x 3, m; re-zeroing evidence).
     displacements: Any = None
@@ -136,7 +134,7 @@ class Daemon:
         self._last_state: tuple[int, str] | None = None
         self.ctx: zmq.Context | None = None
         #: Following the drift while untouched (bubble_rt.daemon.rezero).
-        self.rezero = rezero.Rezeroing(self.config.auto_zero, self._error)
+        self.rezero = rezero.Rezeroing(self.config.auto_zero, self.report_error)
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> Daemon:
@@ -276,7 +274,7 @@ class Daemon:
         return self.ready
 
     # ---------------------------------------------------------------- errors
-    def _error(self, kind: str, exc: BaseException | str) -> None:
+    def report_error(self, kind: str, exc: BaseException | str) -> None:
         """Count a fault of ``kind`` (status: ``error_counts``, reason); logged once, then at
         most every ``ERROR_LOG_PERIOD_S`` per kind with the count: never a line per frame."""
         text = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
@@ -299,7 +297,7 @@ class Daemon:
         try:
             given = cam.reference_frames(k)
         except Exception as exc:
-            self._error("reference", exc)
+            self.report_error("reference", exc)
             given = None
         if given and cam.pressure_out is not self.pressure_buffer:
             # Sim/recorded reference frames carry their own pressure: use the sensor's.
@@ -323,7 +321,7 @@ class Daemon:
                     frame, self.pressure_buffer, cfg.pressure.stale_timeout_s
                 )
             except Exception as exc:  # e.g. a pressure the frame refuses: count, never raise
-                self._error("pressure", exc)
+                self.report_error("pressure", exc)
                 continue
             if self.processor is None or self._tare_requested:
                 self._collecting.append(frame)
@@ -343,7 +341,7 @@ class Daemon:
             try:
                 data = self.processor.stage1(frame)
             except Exception as exc:
-                self._error("deformation", exc)
+                self.report_error("deformation", exc)
                 continue
             timings["stage1"] = (time.perf_counter() - t0) * 1e3
             disp = self.rezero.displacements(data)
@@ -382,7 +380,7 @@ class Daemon:
             if self.recorder is not None:
                 self.recorder.write_reference(frames)
         except Exception as exc:
-            self._error("reference", exc)
+            self.report_error("reference", exc)
         finally:
             self._tare_requested = False
 
@@ -426,7 +424,7 @@ class Daemon:
             timings["stage2"] = (time.perf_counter() - t0) * 1e3
             msg = self._force_message(proc, item, est, reasons, timings)
         except Exception as exc:
-            self._error("estimator", exc)
+            self.report_error("estimator", exc)
             return
         self._publish(item, msg, reasons, est)
 
@@ -550,6 +548,30 @@ class Daemon:
         except zmq.ZMQError:
             pass
 
+    # ---------------------------------------------------------------- parts health reads
+    # The camera source (None before start), the pressure source's thread (None: pressure
+    # carried by the frames), the slot between the stages (its ``dropped`` counts replaced
+    # items), the frames collected so far for the (next) reference, a tare not yet done.
+    @property
+    def camera_source(self) -> Any:
+        return self._camera_src
+
+    @property
+    def pressure_source(self) -> Any:
+        return self._pressure_src
+
+    @property
+    def stage_queue(self) -> LatestSlot[_Item]:
+        return self._mid
+
+    @property
+    def reference_collected(self) -> list[Frame]:
+        return self._collecting
+
+    @property
+    def tare_pending(self) -> bool:
+        return self._tare_requested
+
     # ---------------------------------------------------------------- status
     @property
     def frames_dropped(self) -> int:
@@ -576,14 +598,3 @@ class Daemon:
         self._cold_next = True
         self.rezero.recording_started()
         self.recorder = rec
-
-
-def run(config: DaemonConfig, stop: threading.Event, **kwargs: Any) -> Daemon:
-    """Start a daemon and block until ``stop`` is set; returns the stopped daemon."""
-    d = Daemon(config, **kwargs).start()
-    try:
-        while not stop.wait(0.1):
-            pass
-    finally:
-        d.stop()
-    return d
