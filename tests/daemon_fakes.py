@@ -202,14 +202,15 @@ def constant_pressure() -> tuple[ConstantPressure, None]:
 
 
 def start(
-    cfg: DaemonConfig | None = None, camera: ScriptedCamera | None = None, **kw: Any
-) -> tuple[Daemon, ScriptedCamera]:
-    """A started daemon on the fakes (``fake_config()`` unless ``cfg``), ready, and its camera."""
+    cfg: DaemonConfig | None = None, camera: Any = None, pressure: Any = None, **kw: Any
+) -> tuple[Daemon, Any]:
+    """A started daemon on the fakes (``fake_config()`` unless ``cfg``; a ScriptedCamera and a
+    constant pressure unless given), ready, and its camera."""
     cam = camera or ScriptedCamera()
     d = Daemon(
         cfg or fake_config(),
         camera=cam,
-        pressure=constant_pressure(),
+        pressure=pressure or constant_pressure(),
         processor_factory=FakeProcessor,
         **kw,
     ).start()
@@ -252,16 +253,8 @@ def sim_like_camera(pressure_pa: float = P0, rate_hz: float = 100.0) -> Iterable
 
 
 def start_daemon(camera=None, pressure=None, **overrides):  # type: ignore[no-untyped-def]
-    """A started daemon on ``camera`` (default ScriptedCamera) and the fake processor, with
-    ``fake_config(**overrides)``, ready (like :func:`start`, which also returns the camera)."""
-    d = Daemon(
-        fake_config(**overrides),
-        camera=camera or ScriptedCamera(),
-        pressure=pressure or constant_pressure(),
-        processor_factory=FakeProcessor,
-    ).start()
-    assert d.wait_ready(20)
-    return d
+    """:func:`start` with ``fake_config(**overrides)``, returning the daemon only."""
+    return start(fake_config(**overrides), camera, pressure)[0]
 
 
 def main() -> None:
