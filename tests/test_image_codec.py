@@ -27,6 +27,7 @@ from bubble_rt.io.mcap import (
 )
 from bubble_rt.io.mcap_writer import Recorder, write_recording
 from bubble_rt.io.protocol import pb
+from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -186,7 +187,6 @@ def test_decoding_errors_are_value_errors():
 
 def test_replay_skips_counts_and_names_a_corrupt_image_and_goes_on(tmp_path):
     """Through the daemon's replay source: the run goes on past the bad frames."""
-    import time
 
     from bubble_rt.daemon.service import Daemon
     from bubble_rt.daemon.sources import ReplayCamera
@@ -201,9 +201,7 @@ def test_replay_skips_counts_and_names_a_corrupt_image_and_goes_on(tmp_path):
     d = Daemon(cfg, camera=src, pressure=constant_pressure(), processor_factory=FakeProcessor)
     d.start()
     try:
-        end = time.monotonic() + 20
-        while not (src.finished.is_set() and d.frames_published >= 3) and time.monotonic() < end:
-            time.sleep(0.05)
+        wait_for(lambda: src.finished.is_set() and d.frames_published >= 3, 20, "the replay")
     finally:
         d.stop()
     assert src.stats.errors == {"bad_frame": 2} and src.stats.received == 4

@@ -22,7 +22,7 @@ from bubble_rt.daemon.sim_wire import (
 )
 from bubble_rt.io.client import Subscriber
 from daemon_fakes import make_frame
-from waiting import ANY_PORT, ServedProcess
+from waiting import ANY_PORT, ServedProcess, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 TESTS = Path(__file__).resolve().parent
@@ -138,10 +138,7 @@ def test_reference_frames_rendered_in_the_process_or_cached_equal_the_simulators
             cam.stop()
         path = reference_cache_path(cam.producer.sim, 3)
         assert path is not None
-        deadline = time.monotonic() + 10
-        while not path.exists() and time.monotonic() < deadline:  # written in the background
-            time.sleep(0.05)
-        assert path.exists()
+        assert wait_for(path.exists, 10, "the reference cache (written in the background)")
     assert cam.producer.frames_received == 0  # the second camera rendered nothing
     # The cold cache: the renderer process computed the physics, with progress and its time.
     assert "simulating the physics of scene" in caplog.text
@@ -177,9 +174,7 @@ def test_a_pass_stored_on_disk_replays_the_same_frames_without_rendering(tmp_pat
     rendered = first_frames(cam, 8)  # a whole pass (6) and the start of the replay
     path = pass_cache_path(cam.producer.sim)
     assert path is not None
-    deadline = time.monotonic() + 20
-    while not path.exists() and time.monotonic() < deadline:  # written in the background
-        time.sleep(0.05)
+    assert wait_for(path.exists, 20, "the pass cache (written in the background)")
     again = SimCamera(str(scene), lossless=True)
     assert again.cached_pass is not None and len(again.cached_pass) == 6
     replayed = first_frames(again, 8)
