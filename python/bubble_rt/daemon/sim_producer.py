@@ -160,8 +160,6 @@ def child_main(argv: list[str] | None = None) -> int:
 def _parent_gone() -> int:
     """The daemon closed the pipe: end quietly (stdout pointed at /dev/null, so that the
     interpreter's final flush does not print a broken-pipe traceback)."""
-    import os
-
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, sys.stdout.fileno())
     return 0
@@ -495,4 +493,4 @@ if __name__ == "__main__":
     try:
         sys.exit(child_main())
     except BrokenPipeError:  # the daemon is gone (stopped, or failed to start): nobody to tell
-        os._exit(0)
+        sys.exit(_parent_gone())
