@@ -1,8 +1,12 @@
 #include "lifting.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <exception>
+#include <thread>
 
+#include "depth_fill.h"
 #include "errors.h"
 
 namespace bubble {
@@ -89,6 +93,52 @@ void lift_pixels(const cv::Mat& filled, const cv::Mat& level,
     points(i, 1) = (v - K.cy) / K.fy * z;
     points(i, 2) = z;
   }
+}
+
+namespace {
+double ms_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+}  // namespace
+
+void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
+                  const Eigen::Ref<const RowMatrixX2d>& uv_ref, double fb_threshold,
+                  int smooth_iterations, int max_fill_level, const PinholeIntrinsics& K,
+                  TrackedPixels& out) {
+  require(depth.type() == CV_32F, "track_pixels: depth must be float32");
+  const Eigen::Index n = uv_ref.rows();
+  const auto t0 = std::chrono::steady_clock::now();
+  // The fill reads only the depth image, the flow only the colour one: run them side by side.
+  std::exception_ptr fill_error;
+  std::thread filler([&] {
+    try {
+      fill_depth(depth, out.filled, out.level, smooth_iterations, max_fill_level + 1);
+    } catch (...) {
+      fill_error = std::current_exception();
+    }
+    out.fill_ms = ms_since(t0);
+  });
+  out.flow.resize(n, 2);
+  out.flow_flags = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>::Zero(n);
+  std::exception_ptr flow_error;
+  try {
+    flow.compute(rgb);
+    Eigen::VectorXd fb(n);
+    const FlowField* bwd = flow.backward().empty() ? nullptr : &flow.backward();
+    sample_flow(flow.forward(), bwd, uv_ref, fb_threshold, out.flow, fb, out.flow_flags);
+  } catch (...) {
+    flow_error = std::current_exception();
+  }
+  const auto t_flow = std::chrono::steady_clock::now();
+  out.flow_ms = ms_since(t0);
+  filler.join();  // always joined, also when the flow failed
+  if (flow_error) std::rethrow_exception(flow_error);
+  if (fill_error) std::rethrow_exception(fill_error);
+  const RowMatrixX2d uv = uv_ref + out.flow;
+  out.points.resize(n, 3);
+  out.lift_flags = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>::Zero(n);
+  lift_pixels(out.filled, out.level, uv, K, max_fill_level, out.points, out.lift_flags);
+  out.lift_ms = ms_since(t_flow);
 }
 
 }  // namespace bubble

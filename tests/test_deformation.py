@@ -17,7 +17,7 @@ from bubble_rt.estimation.deformation import (
     Reference,
 )
 from bubble_rt.estimation.fitting import fit_mesh
-from bubble_rt.estimation.lifting import harmonic_fill, lift_pixels, mesh_laplacian
+from bubble_rt.estimation.lifting import harmonic_fill, lift, lift_pixels, mesh_laplacian
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 from scipy.ndimage import map_coordinates
@@ -132,7 +132,37 @@ def test_identical_frames_give_zero_displacement(scene):
     assert d.valid_fraction == 1.0
     assert np.abs(d.U).max() < 2e-6
     assert d.dp == 0.0
-    assert set(d.timings_ms) == {"flow", "lift"}
+    assert set(d.timings_ms) == {"flow", "lift", "fill"}
+    assert all(v >= 0.0 for v in d.timings_ms.values())
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_one_call_tracking_equals_the_separate_steps_bit_for_bit(scene, distorted):
+    """The tracker's one C++ call (depth fill beside the flow) gives exactly what flow,
+    sampling, hole filling and lifting called one after the other give: a moved texture, a
+    dented surface with 30 % holes, and a camera with and without lens distortion."""
+    cam, depth, img, ref, mesh = scene
+    if distorted:
+        cam = replace(cam, distortion=(0.05, -0.02, 0.001, 0.0005, 0.0))
+    F = smooth_flow(cam.height, cam.width, 3.0)
+    cur_depth = depth + np.float32(0.001)
+    cur_depth[blob_mask(cam.height, cam.width, 0.30)] = 0.0
+    cur = Frame(warp(img, F), cur_depth, 100000.0)
+    tr = DeformationTracker(mesh, cam, ref)
+    d = tr.track(cur)
+    s = tr.settings
+    tr._flow.compute(np.ascontiguousarray(cur.rgb))
+    flow, _fb, flags = tr._flow.sample(tr.uv_ref, s.fb_threshold_px)
+    flow = np.asarray(flow)
+    flags = np.asarray(flags, np.uint8).copy()
+    flags[~tr.visible] |= FLAG_OUTSIDE_IMAGE
+    x_cur, lift_flags = lift(cur_depth, tr.uv_ref + flow, cam, s.max_fill_level, s.depth_smoothing)
+    tr.reset_history()
+    by_steps = tr.finish(x_cur - tr.x_ref, flags | lift_flags, d.dp, {}, flow)
+    assert (lift_flags != 0).any() and (lift_flags == 0).sum() > 100  # holes and lifted nodes
+    assert np.array_equal(d.flow, by_steps.flow)
+    assert np.array_equal(d.flags, by_steps.flags)
+    assert np.array_equal(d.U, by_steps.U)
 
 
 def test_known_translation_of_texture_and_depth(scene):

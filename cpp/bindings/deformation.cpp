@@ -113,6 +113,32 @@ void bind_deformation(py::module_& m) {
              bubble::require(!f.empty(), "no flow has been computed");
              return std::make_tuple(mat_to_array<float>(f.flow, 2), f.x0, f.y0, f.scale);
            })
+      .def(
+          "track",
+          [](bubble::OpticalFlow& self, const U8Image& rgb, const F32Image& depth,
+             const ArrDCast& uv_ref, double fb_threshold, int smooth_iterations, int max_fill_level,
+             double fx, double fy, double cx, double cy, bool want_filled) {
+            cv::Mat img = rgb_view(rgb);
+            cv::Mat d = f32_view(depth, "depth");
+            auto pts = uv_view(uv_ref);
+            bubble::TrackedPixels out;
+            {
+              py::gil_scoped_release release;
+              bubble::track_pixels(self, img, d, pts, fb_threshold, smooth_iterations,
+                                   max_fill_level, bubble::PinholeIntrinsics{fx, fy, cx, cy}, out);
+            }
+            py::object filled = py::none();
+            if (want_filled) filled = mat_to_array<float>(out.filled, 1);
+            py::dict ms;
+            ms["flow"] = out.flow_ms;
+            ms["fill"] = out.fill_ms;
+            ms["lift"] = out.lift_ms;
+            return py::make_tuple(std::move(out.flow), std::move(out.flow_flags),
+                                  std::move(out.points), std::move(out.lift_flags), filled, ms);
+          },
+          py::arg("rgb"), py::arg("depth"), py::arg("uv_ref"), py::arg("fb_threshold"),
+          py::arg("smooth_iterations"), py::arg("max_fill_level"), py::arg("fx"), py::arg("fy"),
+          py::arg("cx"), py::arg("cy"), py::arg("want_filled"))
       .def_property_readonly("roi", [](const bubble::OpticalFlow& self) {
         const cv::Rect r = self.roi();
         return std::make_tuple(r.x, r.y, r.width, r.height);

@@ -26,7 +26,7 @@ from bubble_rt.camera import Camera
 from bubble_rt.estimation.lifting import (
     harmonic_fill,
     leave_one_out_residual,
-    lift,
+    lifted_points,
     mesh_laplacian,
     neighbour_outliers,
     neighbour_table,
@@ -207,7 +207,7 @@ class Deformation:
         valid: N bool, True where U was measured (False: filled from neighbours).
         valid_fraction: mean of ``valid``.
         dp: pressure now minus reference pressure, pascals.
-        timings_ms: {"flow": ms, "lift": ms}.
+        timings_ms: {"flow": ms, "lift": ms, "fill": ms} (``DeformationTracker.track``).
         flags: N uint8 reason bits (FLAG_*), 0 for valid nodes.
         flow: N x 2 flow sampled at the node projections (pixels), zeros for oracle.
         degraded_reasons: why the frame's input is implausible (set by the Pipeline's checks).
@@ -451,29 +451,38 @@ class DeformationTracker(NodeTracker):
         self.reference = reference
         self.reset_history()
 
-    # ------------------------------------------------------------------ helpers
-    def _lift(self, depth: NDArray, uv: NDArray) -> tuple[NDArray, NDArray]:
-        s = self.settings
-        return lift(depth, uv, self.camera, s.max_fill_level, s.depth_smoothing)
-
     # ------------------------------------------------------------------ per frame
     def track(self, frame: Frame) -> Deformation:
-        """Displacements of the mesh nodes in ``frame`` against the reference."""
+        """Displacements of the mesh nodes in ``frame`` against the reference.
+
+        One call into C++ (GIL released) computes the flow, fills the depth holes on a thread
+        of its own meanwhile, samples the flow at the nodes and lifts them. Timings (ms):
+        "flow" (flow + sampling), "lift" (the rest of the stage: the end of the fill, the
+        lift, the checks and the fill of flagged nodes; flow + lift is the stage's wall time)
+        and "fill" (the depth fill's own wall time, beside the flow)."""
         dp = self.dp(frame)
         frame.validate(self.camera, need_images=True)
+        cam, s = self.camera, self.settings
         t0 = time.perf_counter()
-        self._flow.compute(np.ascontiguousarray(frame.rgb))
-        t1 = time.perf_counter()
-        flow, _fb, flags = self._flow.sample(self.uv_ref, self.settings.fb_threshold_px)
-        flow = np.asarray(flow)
-        flags = np.asarray(flags, dtype=np.uint8).copy()
+        flow, flags, pinhole, lift_flags, filled, ms = self._flow.track(
+            np.ascontiguousarray(frame.rgb),
+            frame.depth,
+            self.uv_ref,
+            s.fb_threshold_px,
+            s.depth_smoothing,
+            s.max_fill_level,
+            cam.fx,
+            cam.fy,
+            cam.cx,
+            cam.cy,
+            cam.has_distortion,
+        )
         flags[~self.visible] |= FLAG_OUTSIDE_IMAGE
-        x_cur, lift_flags = self._lift(frame.depth, self.uv_ref + flow)  # type: ignore[arg-type]
         flags |= lift_flags
-        U = x_cur - self.x_ref
-        out = self.finish(U, flags, dp, {}, flow)
-        t3 = time.perf_counter()
-        out.timings_ms = {"flow": (t1 - t0) * 1e3, "lift": (t3 - t1) * 1e3}
+        x_cur = lifted_points(pinhole, lift_flags, filled, self.uv_ref + flow, cam)
+        out = self.finish(x_cur - self.x_ref, flags, dp, {}, flow)
+        total = (time.perf_counter() - t0) * 1e3
+        out.timings_ms = {"flow": ms["flow"], "lift": total - ms["flow"], "fill": ms["fill"]}
         return out
 
 

@@ -185,10 +185,18 @@ def lift(
         max_fill_level,
     )
     flags = np.asarray(flags, dtype=np.uint8).copy()
-    pts = np.asarray(pts)
+    return lifted_points(np.asarray(pts), flags, filled, uv, cam), flags
+
+
+def lifted_points(
+    pinhole: NDArray, flags: NDArray, filled: NDArray | None, uv: NDArray, cam: Camera
+) -> NDArray[np.float64]:
+    """Mesh-frame points (N x 3) from the C++ pinhole lift's camera-frame ``pinhole`` points of
+    pixels ``uv`` (N x 2); with lens distortion the sampled depths of the unflagged pixels are
+    re-projected exactly through ``filled`` (the hole-filled depth, needed only then)."""
     if cam.has_distortion:
-        # The C++ lift is pinhole; with distortion re-project the sampled depths exactly.
+        assert filled is not None
         ok = flags == 0
-        pts = np.zeros((len(uv), 3))
-        pts[ok] = cam.to_camera(cam.backproject(uv[ok], sample_z(filled, uv[ok])))
-    return cam.to_mesh(pts), flags
+        pinhole = np.zeros((len(uv), 3))
+        pinhole[ok] = cam.to_camera(cam.backproject(uv[ok], sample_z(filled, uv[ok])))
+    return cam.to_mesh(pinhole)
