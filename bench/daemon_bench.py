@@ -79,6 +79,11 @@ def run_one(
     proc = subprocess.Popen(cmd, env=env, stderr=log, text=True)
     lat: list[float] = []
     stages: dict[str, list[float]] = {}
+    #: Frames never published: gaps in frame_index, seen from outside (with the timings of the
+    #: frames published either side of each gap).
+    missing = 0
+    gaps: list[dict] = []
+    prev = None
     degraded = 0
     fox_stop = None
     try:
@@ -103,6 +108,21 @@ def run_one(
             for f in sub.frames(timeout_s=30):
                 n += 1
                 lat.append(f.latency_ms)
+                if prev is not None and f.frame_index > prev.frame_index + 1:
+                    missing += f.frame_index - prev.frame_index - 1
+                    gaps.append(
+                        {
+                            "after_s": round(time.monotonic() - t0, 2),
+                            "frames": f.frame_index - prev.frame_index - 1,
+                            "before": {k: round(v, 1) for k, v in prev.timings_ms.items()},
+                            "after": {k: round(v, 1) for k, v in f.timings_ms.items()},
+                            "latency_before_after_ms": [
+                                round(prev.latency_ms, 1),
+                                round(f.latency_ms, 1),
+                            ],
+                        }
+                    )
+                prev = f
                 degraded += f.degraded
                 for k, v in f.timings_ms.items():
                     stages.setdefault(k, []).append(v)
@@ -136,6 +156,9 @@ def run_one(
         "frames": n,
         "rate_hz": round(n / elapsed, 2),
         "dropped": st1.frames_dropped - st0.frames_dropped,
+        "missing": missing,
+        "gaps": gaps[:20],
+        "load": os.getloadavg()[0],
         "degraded_frames": degraded,
         "latency_p50_ms": round(float(np.percentile(a, 50)), 1),
         "latency_p99_ms": round(float(np.percentile(a, 99)), 1),
@@ -171,12 +194,16 @@ def main() -> int:
             print(
                 f"{r['mesh']:>7} ({r['nodes']} nodes): {r['rate_hz']:5.1f} Hz over {r['seconds']} s,"
                 f" latency p50 {r['latency_p50_ms']} ms p99 {r['latency_p99_ms']} ms"
-                f" (max {r['latency_max_ms']}), dropped {r['dropped']}, degraded"
+                f" (max {r['latency_max_ms']}), dropped {r['dropped']} (frame_index gaps"
+                f" {r['missing']}), degraded"
                 f" {r['degraded_frames']}, RSS {r['rss_start_mb']} -> {r['rss_end_mb']} MB,"
                 f" SIGINT to exit {r['shutdown_s']} s",
                 flush=True,
             )
             print(f"         stage medians (ms): {r['stage_p50_ms']}", flush=True)
+            print(f"         load average (1 min) at the end: {r['load']:.2f}", flush=True)
+            for g in r["gaps"]:
+                print(f"         gap: {g}", flush=True)
             if args.foxglove:
                 print(
                     f"         foxglove client: {r['foxglove_msgs_per_s']} msg/s,"

@@ -277,6 +277,27 @@ def test_iterable_camera_loops_and_feeds_camera_pressure():
     assert len(buf) > 0 and buf.at(got[-1].t)[0] == pytest.approx(101335.0)
 
 
+def test_iterable_camera_keeps_its_period_where_the_loop_starts_over():
+    # A 3-frame pass looped at 40 Hz: the first frame of each pass comes a period after the
+    # last one of the previous pass, like every other frame (it used to follow at once and
+    # replace it unprocessed: one "drop" per pass of the demo scene).
+    frames = [make_frame(i) for i in range(3)]
+    cam = IterableCamera(lambda: iter(frames), Camera.d405(), rate_hz=40.0, loop=True)
+    cam.start()
+    got = []
+    try:
+        while len(got) < 10:
+            f = cam.output.get(2.0)
+            assert f is not None
+            got.append(f)
+    finally:
+        cam.stop()
+    assert cam.output.dropped == 0
+    gaps = np.diff([f.t for f in got])
+    assert [f.meta["source_index"] for f in got[:7]] == [0, 1, 2, 0, 1, 2, 0]
+    assert gaps.min() > 0.6 / 40.0, gaps
+
+
 def test_iterable_camera_lossless_delivers_every_frame():
     frames = [make_frame(i) for i in range(20)]
     cam = IterableCamera(

@@ -31,8 +31,9 @@ class Vitals:
     publish_times: deque[float] = field(default_factory=lambda: deque(maxlen=600))
     #: A recording failure already counted among the errors (counted once per recording).
     recording_fault_counted: bool = False
-    #: Frames replaced before the first reference was installed (not drops: see frames_dropped).
-    drops_before_reference: int = 0
+    #: Frames replaced while no estimator could take them: before the first reference was
+    #: installed, and while a tare rebuilt the estimator (not drops: see frames_dropped).
+    drops_not_counted: int = 0
 
 
 class Observed(Protocol):
@@ -78,11 +79,11 @@ def raw_drops(d: Observed) -> int:
 
 def frames_dropped(d: Observed) -> int:
     """Frames the estimator could have processed but never did because a newer one arrived
-    first: ``raw_drops`` after the first reference was installed (the frames replaced while
-    the reference was captured and the estimator built are not drops)."""
+    first: ``raw_drops`` less those replaced while a reference was installed (the first, and
+    each tare: the estimator being built or rebuilt could take none of them)."""
     if d.processor is None:
         return 0
-    return raw_drops(d) - d.vitals.drops_before_reference
+    return raw_drops(d) - d.vitals.drops_not_counted
 
 
 def state(d: Observed, now: float | None = None) -> tuple[int, str]:

@@ -119,7 +119,6 @@ class Daemon:
         #: Recording just started: its first solved frame starts the solver cold, so the
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
-        #: ``health.raw_drops`` when the first reference was installed (not counted as drops).
         #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
         #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
@@ -352,6 +351,9 @@ class Daemon:
                 self._finish(item)
 
     def _install_reference(self, frames: list[Frame]) -> None:
+        # Frames replaced meanwhile are no drops: no estimator could take them (before the
+        # first reference, all of them).
+        raw_before = health.raw_drops(self) if self.processor is not None else 0
         try:
             if self.processor is None:
                 if self._recorded_mesh is not None and startup.takes_mesh(self._factory):
@@ -368,7 +370,6 @@ class Daemon:
                     mesh.boundary,
                     self._patches.areas,
                 )
-                self.vitals.drops_before_reference = health.raw_drops(self)
                 self.processor = proc
                 if self.recorder is not None:
                     self.recorder.write_message(TOPIC_MESH, self.mesh_msg)
@@ -382,6 +383,8 @@ class Daemon:
         except Exception as exc:
             self.report_error("reference", exc)
         finally:
+            if self.processor is not None:
+                self.vitals.drops_not_counted += health.raw_drops(self) - raw_before
             self._tare_requested = False
 
     def set_auto_zero(self, enabled: bool) -> None:

@@ -315,6 +315,10 @@ class IterableCamera(CameraSource):
         self.loop = loop
         self.by_timestamps = by_timestamps
         self._reference = reference
+        #: When the next frame is due after a pass (looping): the loop keeps the camera's
+        #: period, as a real camera would (restarting the pace there emitted the first frame of
+        #: a pass right after the last one, which then replaced it unprocessed).
+        self._next_due: float | None = None
 
     def reference_frames(self, n: int) -> list[Frame] | None:
         """The source's reference frames, restamped with the daemon clock like every frame."""
@@ -343,7 +347,7 @@ class IterableCamera(CameraSource):
         log.warning("%s: skipped bad %s: %s", self.name, what, fault)
 
     def _run(self) -> bool | None:
-        next_t = time.monotonic()
+        next_t, self._next_due = self._next_due or time.monotonic(), None
         prev_src_t: float | None = None
         good = 0
         for frame in self._frames():
@@ -371,6 +375,8 @@ class IterableCamera(CameraSource):
                 # Do not try to catch up after a hiccup: pace from now.
                 next_t = max(next_t, time.monotonic() - period) + period
             self.emit(self._stamp(frame))
+        if self.rate_hz:
+            self._next_due = next_t
         if good == 0 and not self._stop.is_set():
             # A pass without one usable frame would loop forever without output.
             self.stats.connected = False
