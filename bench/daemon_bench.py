@@ -114,6 +114,7 @@ def run_one(
                         {
                             "after_s": round(time.monotonic() - t0, 2),
                             "frames": f.frame_index - prev.frame_index - 1,
+                            "first_missing_index": prev.frame_index + 1,
                             "before": {k: round(v, 1) for k, v in prev.timings_ms.items()},
                             "after": {k: round(v, 1) for k, v in f.timings_ms.items()},
                             "latency_before_after_ms": [
@@ -158,6 +159,7 @@ def run_one(
         "dropped": st1.frames_dropped - st0.frames_dropped,
         "missing": missing,
         "gaps": gaps[:20],
+        "missing_indices": [g["first_missing_index"] for g in gaps],
         "load": os.getloadavg()[0],
         "degraded_frames": degraded,
         "latency_p50_ms": round(float(np.percentile(a, 50)), 1),
@@ -202,6 +204,10 @@ def main() -> int:
             )
             print(f"         stage medians (ms): {r['stage_p50_ms']}", flush=True)
             print(f"         load average (1 min) at the end: {r['load']:.2f}", flush=True)
+            if r["missing_indices"]:
+                print(
+                    f"         first missing frame_index of each gap: {r['missing_indices'][:60]}"
+                )
             for g in r["gaps"]:
                 print(f"         gap: {g}", flush=True)
             if args.foxglove:

@@ -5,8 +5,11 @@ All figures come from one run on the same rendered 640 x 480 simulated frames:
 
 - per mesh (coarse 227 / medium 390 / fine 749 nodes) and flow method: end-to-end latency of
   ``Pipeline.process(frame)`` (flow + lifting + solve + post) p50 / p99, rate
-  (1000 / p50 latency, Hz), the per-stage medians from ``Estimate.timings_ms`` and the solver's
-  iterations;
+  (1000 / p50 latency, Hz: one frame after the other, each finished before the next starts;
+  not the throughput of the daemon's two overlapped stages, which a 30 Hz camera paces), the
+  per-stage medians from ``Estimate.timings_ms`` (the depth fill runs beside the flow and is
+  not a stage of its own: ``lift`` is what remains of the tracking after the flow) and the
+  solver's iterations;
 - the paper-faithful ``bubble_rt.reference.ReferencePipeline`` on the same frames: median time
   per frame, the speedup ratio (reference p50 / product p50 at the default setting) and how far
   its outputs are from the product's (net force difference, contact IoU between the two);
