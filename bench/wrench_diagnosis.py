@@ -10,7 +10,9 @@ frames whose true net force is at least 1 N (medians):
   force-weighted centre ``|c_gt x (F - F_gt)|`` and the rest (the force distribution's moment
   about ``c_gt``), both over ``|tau_gt|``; the moment of each side about its own centre (mNm);
 - net force read along the truth's contact normal and along its shear direction (estimate /
-  truth, frames whose true shear is at least 0.3 N);
+  truth, frames whose true shear is at least 0.3 N), and the same of the unregularised model
+  ``K U - dp a n`` on the true displacements at the estimator's nodes (``raw_true_u_*``: the
+  model's own read, without tracking or regularisation);
 - split frames with two true pins of at least 0.5 N: every interior node's force given to the
   nearest true pin, the worse pin's ``|F - F_gt| / |F_gt|`` and the part of it across F_gt.
 
@@ -38,8 +40,9 @@ def _centre(x: np.ndarray, f: np.ndarray) -> np.ndarray:
     return np.asarray((w[:, None] * x).sum(axis=0) / w.sum())
 
 
-def frame_terms(e: Any, truth: Any, mesh: Any) -> dict[str, float]:
-    """The diagnosis' quantities of one frame (module docstring)."""
+def frame_terms(e: Any, truth: Any, mesh: Any, model: Any) -> dict[str, float]:
+    """The diagnosis' quantities of one frame (module docstring); ``model`` the estimator's
+    MembraneModel."""
     it = np.asarray(mesh.interior, dtype=bool)
     V = np.asarray(mesh.vertices)[it]
     F = np.asarray(e.node_forces, dtype=float)[it]
@@ -64,10 +67,17 @@ def frame_terms(e: Any, truth: Any, mesh: Any) -> dict[str, float]:
     nc = -(np.linalg.norm(G, axis=1)[:, None] * normals).sum(axis=0)
     nc /= np.linalg.norm(nc)
     shear_gt = Fg - (Fg @ nc) * nc
+    # The unregularised model K U - dp a n on the true displacements at the estimator's nodes.
+    V_all = np.asarray(mesh.vertices)
+    U_true = truth.displace(V_all) - V_all
+    U_true[~it] = 0.0
+    Fr = model.external_forces(U_true, e.pressure_delta_pa)[it].sum(axis=0)
     out["normal_read"] = float((Fe @ nc) / (Fg @ nc))
+    out["raw_true_u_normal_read"] = float((Fr @ nc) / (Fg @ nc))
     if np.linalg.norm(shear_gt) >= 0.3:
         u = shear_gt / np.linalg.norm(shear_gt)
         out["shear_read"] = float((Fe @ u) / np.linalg.norm(shear_gt))
+        out["raw_true_u_shear_read"] = float((Fr @ u) / np.linalg.norm(shear_gt))
     pins = [p for p in truth.patches() if np.linalg.norm(p.force) >= 0.5]
     if len(pins) == 2:
         Xall = np.asarray(truth.sim_reference_vertices)
@@ -102,7 +112,7 @@ def main() -> None:
                     e = est.process(frame)
                     t = frame.truth
                     if t.converged and np.linalg.norm(t.net_force) >= WRENCH_MIN_N:
-                        rows[method].append(frame_terms(e, t, mesh))
+                        rows[method].append(frame_terms(e, t, mesh, est.estimator.model))
     keys = list(dict.fromkeys(k for v in rows.values() for r in v for k in r))
     print(f"seed {a.seed}: medians over frames >= {WRENCH_MIN_N:g} N")
     print("| tracking | frames | " + " | ".join(keys) + " |")
