@@ -7,7 +7,7 @@ import pytest
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io.client import Subscriber
 from bubble_rt.mesh import Mesh
-from bubble_rt.wrench import PatchFinder, net_torque, shared_direction
+from bubble_rt.wrench import PatchFinder, net_torque
 from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config
 
 pytestmark = pytest.mark.timeout(60)
@@ -87,14 +87,8 @@ def test_a_patch_carries_the_force_of_the_support_around_it():
     left, right = sorted(pf.patches(contact, forces, support=support), key=lambda q: q.centroid[0])
     # Nearest contact node: columns 0-3 to the left patch (column 3 is a tie, taken by the
     # first patch), 4-6 to the right one; the far corner belongs to no patch.
-    # Each carries its nodes' load along the load the two carry together.
-    carried = np.array([[0.0 + 0.1 + 0.2 + 0.3, 0, -4.0], [0.4 + 0.5 + 0.6, 0, -3.0]])
-    total = carried.sum(axis=0)
-    d = total / np.linalg.norm(total)
-    np.testing.assert_allclose(left.force + right.force, total)
-    for patch, load in zip((left, right), carried, strict=True):
-        np.testing.assert_allclose(np.cross(patch.force, d), 0.0, atol=1e-12)
-        np.testing.assert_allclose(patch.force @ d, load @ d)
+    np.testing.assert_allclose(left.force, [0.0 + 0.1 + 0.2 + 0.3, 0, -4.0])
+    np.testing.assert_allclose(right.force, [0.4 + 0.5 + 0.6, 0, -3.0])
     # Torque about the (single-node) centroid, over the nodes whose force the patch carries.
     c = mesh.vertices[row[1]]
     x = mesh.vertices[row[:4]]
@@ -102,26 +96,7 @@ def test_a_patch_carries_the_force_of_the_support_around_it():
     np.testing.assert_allclose(left.centroid, c)  # centroids stay on the contact nodes
     # Without a support a patch carries its contact nodes' forces only.
     q = sorted(pf.patches(contact, forces), key=lambda q: q.centroid[0])
-    alone = shared_direction(forces[row[[1, 5]]])
-    np.testing.assert_allclose([q[0].force, q[1].force], alone)
-
-
-def test_patch_forces_share_the_direction_of_their_sum():
-    # Two pins of one indenter read with opposing shear that cancels in the sum (the
-    # estimator's split-pin artefact): both come out along the sum, magnitudes kept along it.
-    f = np.array([[1.2, -2.0, -6.3], [1.2, 0.45, -4.5]])
-    out = shared_direction(f)
-    total = f.sum(axis=0)
-    np.testing.assert_allclose(out.sum(axis=0), total)
-    np.testing.assert_allclose(out[0], (f[0] @ total) / (total @ total) * total)
-    np.testing.assert_allclose(np.cross(out[1], total), 0.0, atol=1e-12)
-    # One patch, a zero sum or a non-finite one: left as they are.
-    np.testing.assert_array_equal(shared_direction(f[:1]), f[:1])
-    opposite = np.array([[1.0, 0, 0], [-1.0, 0, 0]])
-    np.testing.assert_array_equal(shared_direction(opposite), opposite)
-    bad = np.array([[np.inf, 0, 0], [1.0, 0, 0]])
-    np.testing.assert_array_equal(shared_direction(bad), bad)
-    assert shared_direction(np.zeros((0, 3))).shape == (0, 3)
+    np.testing.assert_allclose(q[0].force, forces[row[1]])
 
 
 def test_net_torque_skips_the_rim_and_non_finite_forces():

@@ -16,20 +16,6 @@ ContactPatch normal / peak_pressure / torque / pressure_centroid).
   rule keeps only a dent's firmest nodes (``k_peak``), so the contact nodes alone carry a
   share of the load (about 2/3 on simulated split-pin presses), while the support around them
   carries the rest; a support region with no contact node belongs to no patch.
-  With two patches or more, each patch's force is then turned along the load the patches carry
-  together, keeping its component along it (``shared_direction``): patch k reports
-  ``(F_k . d) / |L| * L``, L the sum of the patches' forces and d its direction, so the
-  patches still add up to L. Why: the estimator reads the net force's shear (the sum) but not
-  how the shear splits between contacts; its tangential field holds opposing pairs that
-  cancel in the sum (on simulated split-pin presses, the two pins' forces pushed towards each
-  other by about 0.3 of their magnitude even when every force-carrying node is given to the
-  nearest true pin; with true displacements as well: docs/evaluation.md, "Wrench and
-  patches"). The shared direction is exact when the contacts' forces are parallel (one rigid
-  object pressing and sliding as a whole; the simulated split pins' true forces are within
-  0.12-0.15 of parallel in the median) and wrong for two objects pushing sideways in
-  different directions, whose per-patch shear this estimator cannot resolve either way. The
-  magnitudes (the split of the load) are the estimator's own. A patch's ``torque`` stays the
-  torque of its nodes' forces.
 
 Shared by the daemon (what it publishes) and the evaluation (what it scores), so both read the
 same numbers.
@@ -62,20 +48,6 @@ def net_torque(
         keep = np.asarray(interior, dtype=bool).reshape(-1)
         x, f = x[keep], f[keep]
     return np.asarray(np.cross(x, f).sum(axis=0), dtype=np.float64).reshape(3)
-
-
-def shared_direction(forces: ArrayLike) -> NDArray[np.float64]:
-    """The patches' forces (K x 3, N) along the load they carry together: patch k gets
-    ``(F_k . d) / |L| * L``, ``L = sum_k F_k``, ``d = L / |L|`` (module docstring, "The force a
-    patch carries"). The sum is unchanged, one patch keeps its force; a zero or non-finite
-    total leaves the forces as they are."""
-    Fk = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
-    total = Fk.sum(axis=0)
-    n = float(np.linalg.norm(total))
-    if len(Fk) < 2 or not np.isfinite(n) or n <= 0:
-        return Fk
-    d = total / n
-    return np.asarray(np.outer(Fk @ d / n, total))
 
 
 def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -135,9 +107,6 @@ class PatchFinder:
         sub = self.adjacency[idx][:, idx]
         n_comp, labels = connected_components(sub, directed=False)
         owner = self._load_owner(idx, labels, support)
-        carried = shared_direction(
-            np.array([F[owner == c].sum(axis=0) for c in range(n_comp)]).reshape(-1, 3)
-        )
         out = []
         for c in range(n_comp):
             nodes = idx[labels == c]
@@ -157,7 +126,7 @@ class PatchFinder:
                 protocol.Patch(
                     centroid=centroid,
                     area=area,
-                    force=carried[c],
+                    force=f.sum(axis=0),
                     nodes=nodes.astype(np.int64),
                     normal=_unit(a @ self.normals[nodes]),
                     peak_pressure=float(p[nodes].max()),
