@@ -49,16 +49,23 @@ void BlockMatrix3::multiply(const Eigen::VectorXd& x, Eigen::VectorXd& y) const 
 
 void BlockMatrix3::multiply_transposed(const Eigen::VectorXd& x, Eigen::VectorXd& y) const {
   y.setZero(3 * cols_);
+  for (int i = 0; i < rows_; ++i) add_transposed_row(x, i, y);
+}
+
+void BlockMatrix3::add_transposed_rows(const Eigen::VectorXd& x, const std::vector<int>& rows,
+                                       Eigen::VectorXd& y) const {
+  for (const int i : rows) add_transposed_row(x, i, y);
+}
+
+void BlockMatrix3::add_transposed_row(const Eigen::VectorXd& x, int i, Eigen::VectorXd& y) const {
   double* yp = y.data();
-  for (int i = 0; i < rows_; ++i) {
-    const double x0 = x[3 * i], x1 = x[3 * i + 1], x2 = x[3 * i + 2];
-    for (int p = rowptr_[i]; p < rowptr_[i + 1]; ++p) {
-      const double* v = &vals_[9 * static_cast<size_t>(p)];
-      double* t = yp + 3 * colblk_[p];
-      t[0] += v[0] * x0 + v[3] * x1 + v[6] * x2;
-      t[1] += v[1] * x0 + v[4] * x1 + v[7] * x2;
-      t[2] += v[2] * x0 + v[5] * x1 + v[8] * x2;
-    }
+  const double x0 = x[3 * i], x1 = x[3 * i + 1], x2 = x[3 * i + 2];
+  for (int p = rowptr_[i]; p < rowptr_[i + 1]; ++p) {
+    const double* v = &vals_[9 * static_cast<size_t>(p)];
+    double* t = yp + 3 * colblk_[p];
+    t[0] += v[0] * x0 + v[3] * x1 + v[6] * x2;
+    t[1] += v[1] * x0 + v[4] * x1 + v[7] * x2;
+    t[2] += v[2] * x0 + v[5] * x1 + v[8] * x2;
   }
 }
 

@@ -304,7 +304,6 @@ struct GroupLassoSolver::SolveState {
         zn(m),
         tmp(m),
         Ax(m),
-        ATy(nfd),
         a(m, nfd),
         b(m, nfd),
         best(m, nfd),
@@ -320,14 +319,18 @@ struct GroupLassoSolver::SolveState {
   const BlockLDLT* ldlt = nullptr;
   double rho = 0;
   Eigen::VectorXd rhs, xt, zt, zr, v, zn, tmp;  // iteration scratch
-  Eigen::VectorXd Ax, ATy;                      // products at the checked iterate
+  Eigen::VectorXd Ax;  // A x at the current x, kept up to date by over_relax (no product)
   DualPoint a, b, best;                         // dual candidates, best = last check's bound
   bool have_best = false;
   Eigen::VectorXd dy, da;  // line-search scratch
   bool accelerate;
   Anderson aa;
   Eigen::VectorXd u, g;  // Anderson input and output
-  double pobj = 0, gap = 0, rp = 0, rd = 0;
+  std::vector<int> force_nodes;  // dual_bound scratch: nodes where x leaves a force
+  double pobj = 0, gap = 0, rp = 0;
+  // Check schedule: the gap and iteration of the last check since rho last moved.
+  int next_check = 0, next_rho_check = 0, last_check = 0;
+  double last_gap = 0;
 };
 
 SolverResult GroupLassoSolver::solve() {
@@ -349,22 +352,32 @@ SolverResult GroupLassoSolver::solve() {
   SolveState st(t0, 3 * n_, 3 * nf_, settings_.anderson_memory);
   st.warm = settings_.warm_start && have_prev_;
   start_iterates();
+  st.Ax = zh_;
   st.raw_force_scale = std::sqrt(bh_.squaredNorm() / n_);
   set_frame_rho(st.raw_force_scale);
   use_rho(st, &info.factorizations);
   info.status = SolverStatus::max_iter_reached;
+  st.next_check = settings_.check_interval;
+  st.next_rho_check = settings_.adaptive_rho_interval;
   int k = 0;
   for (k = 1; k <= settings_.max_iter; ++k) {
     admm_iteration(st);
-    if (k % settings_.check_interval != 0 && k != settings_.max_iter) continue;
+    if (k < st.next_check && k != settings_.max_iter) continue;
     measure(st);
-    if (const auto status = termination(st)) {
+    auto status = termination(st);
+    // The certificate is confirmed with A x recomputed, not only the running update of it.
+    if (status == SolverStatus::solved) status = (exact_measure(st), termination(st));
+    if (status) {
       info.status = *status;
       break;
     }
-    if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval)
+    schedule_check(st, k);
+    if (settings_.adaptive_rho && k >= st.next_rho_check) {
+      st.next_rho_check += settings_.adaptive_rho_interval;
       adapt_rho(st, &info.factorizations);
+    }
   }
+  if (info.status != SolverStatus::solved) exact_measure(st);
   write_result(st, std::min(k, settings_.max_iter), res);
   remember_solution(st, res);
   info.solve_time_ms = ms_since(t0);
@@ -443,6 +456,7 @@ void GroupLassoSolver::adapt_rho(SolveState& st, int* factorizations) {
   rho_idx_ = std::clamp(rho_idx_, -80, 80);
   use_rho(st, factorizations);
   st.aa.reset();
+  st.last_check = 0;  // the gap's rate of decrease was measured at the old rho
 }
 
 void GroupLassoSolver::admm_iteration(SolveState& st) {
@@ -468,9 +482,11 @@ void GroupLassoSolver::x_update(SolveState& st) const {
   Ab_.multiply(st.xt, st.zt);
 }
 
+// x moves only here, so A x follows from zt = A xt without a product.
 void GroupLassoSolver::over_relax(SolveState& st) {
   const double alpha = settings_.alpha;
   xh_ = alpha * st.xt + (1 - alpha) * xh_;
+  st.Ax = alpha * st.zt + (1 - alpha) * st.Ax;
   st.zr = alpha * st.zt + (1 - alpha) * zh_;
 }
 
@@ -503,13 +519,43 @@ void GroupLassoSolver::anderson_step(SolveState& st) {
   yh_ = st.rho * st.g.tail(m);
 }
 
+// The certificate at the current iterate: one product with A^T plus the support's share of
+// a second (dual_bound); A x is kept up to date by over_relax.
 void GroupLassoSolver::measure(SolveState& st) const {
-  Ab_.multiply(xh_, st.Ax);
-  Ab_.multiply_transposed(yh_, st.ATy);
   st.pobj = objective(st.Ax);
   st.gap = std::max(st.pobj - dual_bound(st), 0.0);
+}
+
+// measure() with A x recomputed from x and the dual bound of the last check: what the result
+// reports, exact up to rounding in one product.
+void GroupLassoSolver::exact_measure(SolveState& st) const {
+  Ab_.multiply(xh_, st.Ax);
+  st.pobj = objective(st.Ax);
+  if (st.have_best) st.gap = std::max(st.pobj - dual_value(st.best), 0.0);
   st.rp = (st.Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
-  st.rd = (Pd_.cwiseProduct(xh_) + st.ATy).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+}
+
+// ||P x + A^T y||_inf at the returned iterate, for the report only.
+double GroupLassoSolver::dual_residual() const {
+  Eigen::VectorXd aty;
+  Ab_.multiply_transposed(yh_, aty);
+  return (Pd_.cwiseProduct(xh_) + aty).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+}
+
+// The gap falls roughly geometrically: from its rate since the last check, the next check
+// lands where the gap is expected to reach the tolerance, check_interval at most, so a solve
+// stops within an iteration or two of certification instead of up to check_interval - 1 late.
+void GroupLassoSolver::schedule_check(SolveState& st, int k) const {
+  int step = settings_.check_interval;
+  const double tol = settings_.eps_abs + settings_.eps_rel * std::abs(st.pobj);
+  if (st.last_check > 0 && st.gap < st.last_gap && st.gap > tol) {
+    const double rate = std::log(st.last_gap / st.gap) / (k - st.last_check);
+    const double needed = std::log(st.gap / tol) / rate;
+    step = static_cast<int>(std::clamp(std::ceil(needed), 1.0, double(step)));
+  }
+  st.last_check = k;
+  st.last_gap = st.gap;
+  st.next_check = k + step;
 }
 
 // Unscaled and unitless, so that eps_abs means the same on every mesh and in every unit.
@@ -524,10 +570,11 @@ double GroupLassoSolver::objective(const Eigen::VectorXd& Ax) const {
 // cheaply: (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where
 // x leaves a force replaced by the multiplier x asks for; the best point on the segment a-b,
 // then on the segment to the best point of the previous check, then the best scaling along
-// the ray. All these stay feasible and need two products with A^T.
+// the ray. All these stay feasible and need one product with A^T, plus the support rows of a
+// second.
 double GroupLassoSolver::dual_bound(SolveState& st) const {
   projected_multiplier(st.a);
-  force_multiplier(st.Ax, st.rho, st.b);
+  force_multiplier(st.a, st.rho, st.b, st.force_nodes, st);
   maximize_on_segment(st.a, st.b, st);
   if (st.have_best) maximize_on_segment(st.a, st.best, st);
   best_scaling(st.a, st.best);
@@ -542,18 +589,23 @@ void GroupLassoSolver::projected_multiplier(DualPoint& p) const {
 }
 
 // Where x leaves a force F_i, optimality asks for y_i = w_i F_i / ||F_i||; elsewhere the
-// projected ADMM multiplier.
-void GroupLassoSolver::force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const {
-  p.y = yh_;
+// projected ADMM multiplier, i.e. the point `projected`. The two differ only on the force
+// nodes (the support, few in most frames), so A^T y is corrected there instead of recomputed.
+void GroupLassoSolver::force_multiplier(const DualPoint& projected, double rho, DualPoint& p,
+                                        std::vector<int>& force_nodes, SolveState& st) const {
+  force_nodes.clear();
+  p.y = projected.y;
   for (int i = 0; i < n_; ++i) {
-    const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const Eigen::Vector3d f = st.Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
     const double fn = f.norm();
-    if (fn > 1e-9 * wh_(i) / rho)
+    if (fn > 1e-9 * wh_(i) / rho) {
       p.y.segment<3>(3 * i) = wh_(i) / fn * f;
-    else
-      project_on_ball(p.y.segment<3>(3 * i), wh_(i));
+      force_nodes.push_back(i);
+    }
   }
-  Ab_.multiply_transposed(p.y, p.aty);
+  st.dy = p.y - projected.y;
+  p.aty = projected.aty;
+  Ab_.add_transposed_rows(st.dy, force_nodes, p.aty);
 }
 
 // The dual is a concave quadratic along the segment p1-p2 and every point of it is feasible:
@@ -611,7 +663,7 @@ void GroupLassoSolver::write_result(const SolveState& st, int iterations, Solver
   info.objective = st.pobj;
   info.duality_gap = st.gap;
   info.primal_residual = st.rp;
-  info.dual_residual = st.rd;
+  info.dual_residual = dual_residual();
   info.rho = st.rho;
   const Eigen::VectorXd x = D_.cwiseProduct(xh_);
   for (int i = 0; i < n_; ++i)
@@ -626,7 +678,6 @@ void GroupLassoSolver::remember_solution(SolveState& st, const SolverResult& res
     have_prev_ = false;
     return;
   }
-  Ab_.multiply(xh_, st.Ax);
   force_scale_ = std::sqrt((st.Ax + bh_).squaredNorm() / n_);
   V_prev_ = U_ + res.dU;
   dual_prev_ = res.dual;

@@ -34,6 +34,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "block_ldlt.h"
 #include "block_matrix.h"
@@ -133,10 +134,14 @@ class GroupLassoSolver {
   void anderson_step(SolveState& st);
   // Every check_interval iterations: residuals and the duality-gap certificate.
   void measure(SolveState& st) const;
+  void exact_measure(SolveState& st) const;
+  void schedule_check(SolveState& st, int k) const;
+  double dual_residual() const;
   double objective(const Eigen::VectorXd& Ax) const;
   double dual_bound(SolveState& st) const;
   void projected_multiplier(DualPoint& p) const;
-  void force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const;
+  void force_multiplier(const DualPoint& projected, double rho, DualPoint& p,
+                        std::vector<int>& force_nodes, SolveState& st) const;
   void maximize_on_segment(DualPoint& p1, const DualPoint& p2, SolveState& st) const;
   void best_scaling(const DualPoint& p, DualPoint& out) const;
   double dual_value(const DualPoint& p) const;
