@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <map>
 
+#include "block_matrix.h"
 #include "errors.h"
 
 namespace bubble {
@@ -79,7 +80,7 @@ BlockLDLT::BlockLDLT(const Eigen::SparseMatrix<double>& M) {
         const int r = static_cast<int>(it.row());
         const int I = r / 3;
         if (I == J) continue;
-        vals_[9 * (base + slot[I]) + 3 * (r % 3) + c] = it.value();
+        vals_[9 * (base + slot[I]) + block3::offset(r % 3, c)] = it.value();
       }
     colptr_[J + 1] = static_cast<int>(rowblk_.size());
   }
@@ -99,37 +100,38 @@ void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
     w[3 * k + 1] = b[3 * o + 1];
     w[3 * k + 2] = b[3 * o + 2];
   }
-  // Forward: L y = w (column oriented).
+  // Forward: L y = w, column oriented: each solved node updates the rows below it.
   for (int J = 0; J < nb_; ++J) {
     double* y = w + 3 * J;
     const double* ld = &ldiag_[3 * J];
     y[1] -= ld[0] * y[0];
     y[2] -= ld[1] * y[0] + ld[2] * y[1];
-    const double y0 = y[0], y1 = y[1], y2 = y[2];
+    const Eigen::Vector3d yJ(y[0], y[1], y[2]);
     for (int p = colptr_[J]; p < colptr_[J + 1]; ++p) {
       const double* v = &vals_[9 * static_cast<size_t>(p)];
       double* t = w + 3 * rowblk_[p];
-      t[0] -= v[0] * y0 + v[1] * y1 + v[2] * y2;
-      t[1] -= v[3] * y0 + v[4] * y1 + v[5] * y2;
-      t[2] -= v[6] * y0 + v[7] * y1 + v[8] * y2;
+      Eigen::Map<Eigen::Vector2d>(t) -= block3::top(v) * yJ;
+      t[2] -= block3::bottom(v).dot(yJ);
     }
   }
   for (int i = 0; i < 3 * nb_; ++i) w[i] *= dinv_[i];
-  // Backward: L^T x = y.
+  // Backward: L^T x = y. The products L_IJ^T x_I are summed elementwise over the column and
+  // reduced once at its end.
   for (int J = nb_ - 1; J >= 0; --J) {
-    double s0 = 0, s1 = 0, s2 = 0;
+    Eigen::Matrix<double, 2, 3> top = Eigen::Matrix<double, 2, 3>::Zero();
+    Eigen::RowVector3d bottom = Eigen::RowVector3d::Zero();
     for (int p = colptr_[J]; p < colptr_[J + 1]; ++p) {
       const double* v = &vals_[9 * static_cast<size_t>(p)];
       const double* t = w + 3 * rowblk_[p];
-      s0 += v[0] * t[0] + v[3] * t[1] + v[6] * t[2];
-      s1 += v[1] * t[0] + v[4] * t[1] + v[7] * t[2];
-      s2 += v[2] * t[0] + v[5] * t[1] + v[8] * t[2];
+      top += block3::top(v).cwiseProduct(Eigen::Map<const Eigen::Vector2d>(t).replicate<1, 3>());
+      bottom += t[2] * block3::bottom(v);
     }
+    const Eigen::RowVector3d s = top.colwise().sum() + bottom;
     double* y = w + 3 * J;
     const double* ld = &ldiag_[3 * J];
-    y[0] -= s0;
-    y[1] -= s1;
-    y[2] -= s2;
+    y[0] -= s[0];
+    y[1] -= s[1];
+    y[2] -= s[2];
     y[1] -= ld[2] * y[2];
     y[0] -= ld[0] * y[1] + ld[1] * y[2];
   }

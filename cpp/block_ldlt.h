@@ -30,7 +30,7 @@ class BlockLDLT {
   std::vector<double> ldiag_;  // per block column: l10, l20, l21 of its unit-lower diagonal
   std::vector<int> colptr_;    // nb + 1
   std::vector<int> rowblk_;    // row block of each stored block
-  std::vector<double> vals_;   // 9 per stored block, row-major L(3I + r, 3J + c)
+  std::vector<double> vals_;   // 9 per stored block: rows 0-1 column-major, then row 2
   mutable Eigen::VectorXd w_;
 };
 

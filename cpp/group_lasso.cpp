@@ -48,15 +48,15 @@ class Anderson {
       const int k = static_cast<int>(std::min<long>(count_, mem_));
       for (int j = 0; j < k; ++j) H_(col, j) = H_(j, col) = dF_.col(col).dot(dF_.col(j));
     }
-    f_prev_ = f_;
     g_prev_ = g;
     fprev_norm_ = fn;
     have_prev_ = true;
     const int k = static_cast<int>(std::min<long>(count_, mem_));
+    if (k > 0) rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
+    f_prev_.swap(f_);
     if (k == 0) return;
     Eigen::MatrixXd H = H_.topLeftCorner(k, k);
     H.diagonal().array() += 1e-10 * H.diagonal().maxCoeff() + 1e-300;
-    rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
     const Eigen::VectorXd gamma = H.ldlt().solve(rhs_);
     if (!gamma.allFinite()) return;
     g.noalias() -= dG_.leftCols(k) * gamma;
@@ -198,6 +198,7 @@ void GroupLassoSolver::setup() {
   AhT_.makeCompressed();
   AtA_ = (AhT_ * Ah_).pruned();
   Ab_ = BlockMatrix3(Ah_);
+  AbT_ = BlockMatrix3(AhT_);
   AtA_.makeCompressed();
   // Cost scale: the mean of P's diagonal becomes one (OSQP's rule without a linear term).
   Pd_ = 2 * c_ * D_.cwiseAbs2();
@@ -317,15 +318,15 @@ struct GroupLassoSolver::SolveState {
   bool warm = false;           // started from the previous frame's solution
   double raw_force_scale = 0;  // rms nodal force at dU = 0, floors the force scale of rho
   const BlockLDLT* ldlt = nullptr;
-  double rho = 0;
+  double rho = 0, inv_rho = 0;
   Eigen::VectorXd rhs, xt, zt, zr, v, zn, tmp;  // iteration scratch
-  Eigen::VectorXd Ax;  // A x at the current x, kept up to date by over_relax (no product)
-  DualPoint a, b, best;                         // dual candidates, best = last check's bound
+  Eigen::VectorXd Ax;    // A x at the current x, kept up to date by over_relax (no product)
+  DualPoint a, b, best;  // dual candidates, best = last check's bound
   bool have_best = false;
   Eigen::VectorXd dy, da;  // line-search scratch
   bool accelerate;
   Anderson aa;
-  Eigen::VectorXd u, g;  // Anderson input and output
+  Eigen::VectorXd u, g;          // Anderson input and output
   std::vector<int> force_nodes;  // dual_bound scratch: nodes where x leaves a force
   double pobj = 0, gap = 0, rp = 0;
   // Check schedule: the gap and iteration of the last check since rho last moved.
@@ -441,6 +442,7 @@ void GroupLassoSolver::set_frame_rho(double raw_force_scale) {
 void GroupLassoSolver::use_rho(SolveState& st, int* factorizations) {
   st.ldlt = &factor(rho_idx_, factorizations);
   st.rho = rho_of(rho_idx_);
+  st.inv_rho = 1.0 / st.rho;  // the iterations multiply: a division per entry is slow
 }
 
 // The frame rule on the current iterate: a frame unlike the last one (a contact made or
@@ -463,7 +465,7 @@ void GroupLassoSolver::admm_iteration(SolveState& st) {
   const int m = 3 * n_;
   if (st.accelerate) {
     st.u.head(m) = zh_;
-    st.u.tail(m) = yh_ / st.rho;
+    st.u.tail(m) = st.inv_rho * yh_;
   }
   x_update(st);
   over_relax(st);
@@ -476,7 +478,7 @@ void GroupLassoSolver::admm_iteration(SolveState& st) {
 // this is two triangular solves. zt = A xt feeds the over-relaxation.
 void GroupLassoSolver::x_update(SolveState& st) const {
   st.tmp.noalias() = st.rho * zh_ - yh_;
-  Ab_.multiply_transposed(st.tmp, st.rhs);
+  AbT_.multiply(st.tmp, st.rhs);
   st.rhs += settings_.sigma * xh_;
   st.ldlt->solve(st.rhs, st.xt);
   Ab_.multiply(st.xt, st.zt);
@@ -493,10 +495,10 @@ void GroupLassoSolver::over_relax(SolveState& st) {
 // The prox of sum_i wh_i ||z_i + bh_i|| / rho at v: the penalty acts on the force z + b, so
 // shrink u = v + b blockwise and shift back.
 void GroupLassoSolver::z_update(SolveState& st) const {
-  st.v = st.zr + yh_ / st.rho;
+  st.v = st.zr + st.inv_rho * yh_;
   for (int i = 0; i < n_; ++i) {
     const Eigen::Vector3d u = st.v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
-    const double nu = u.norm(), t = wh_(i) / st.rho;
+    const double nu = u.norm(), t = wh_(i) * st.inv_rho;
     const double k = nu > t ? 1.0 - t / nu : 0.0;
     st.zn.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
   }
@@ -513,7 +515,7 @@ void GroupLassoSolver::dual_update(SolveState& st) {
 void GroupLassoSolver::anderson_step(SolveState& st) {
   const int m = 3 * n_;
   st.g.head(m) = zh_;
-  st.g.tail(m) = yh_ / st.rho;
+  st.g.tail(m) = st.inv_rho * yh_;
   st.aa.step(st.u, st.g);
   zh_ = st.g.head(m);
   yh_ = st.rho * st.g.tail(m);
@@ -538,7 +540,7 @@ void GroupLassoSolver::exact_measure(SolveState& st) const {
 // ||P x + A^T y||_inf at the returned iterate, for the report only.
 double GroupLassoSolver::dual_residual() const {
   Eigen::VectorXd aty;
-  Ab_.multiply_transposed(yh_, aty);
+  AbT_.multiply(yh_, aty);
   return (Pd_.cwiseProduct(xh_) + aty).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
 }
 
@@ -585,7 +587,7 @@ double GroupLassoSolver::dual_bound(SolveState& st) const {
 void GroupLassoSolver::projected_multiplier(DualPoint& p) const {
   p.y = yh_;
   for (int i = 0; i < n_; ++i) project_on_ball(p.y.segment<3>(3 * i), wh_(i));
-  Ab_.multiply_transposed(p.y, p.aty);
+  AbT_.multiply(p.y, p.aty);
 }
 
 // Where x leaves a force F_i, optimality asks for y_i = w_i F_i / ||F_i||; elsewhere the

@@ -164,7 +164,9 @@ class GroupLassoSolver {
   Eigen::VectorXd wh_;                   // s w_i / E_i per node
   double s_ = 1;
   SparseMatrixd Ah_, AhT_, AtA_;
-  BlockMatrix3 Ab_;     // Ah_ in 3 x 3 blocks, for the per-iteration products
+  // Ah_ and its transpose in 3 x 3 blocks, for the per-iteration products (both by rows:
+  // a gather per row is faster than the scatter of a transposed product).
+  BlockMatrix3 Ab_, AbT_;
   Eigen::VectorXd Pd_;  // diagonal of the scaled P = 2 s c D^2
   std::map<int, std::unique_ptr<BlockLDLT>> factors_;
   int rho_idx_ = 0;
