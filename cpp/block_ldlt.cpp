@@ -158,7 +158,12 @@ long BlockLDLT::block_count() const { return static_cast<long>(structure_->rowbl
 void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
   const Structure& s = *structure_;
   const int nb = s.nb;
+  // Raw pointers: the stores into w could alias the vectors' own members, which would make
+  // the compiler reload them for every block.
   double* w = w_.data();
+  const double* vals = vals_.data();
+  const int* colptr = s.colptr.data();
+  const int* rowblk = s.rowblk.data();
   for (int k = 0; k < nb; ++k) {
     const int o = s.orig[k];
     w[3 * k] = b[3 * o];
@@ -172,9 +177,9 @@ void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
     y[1] -= ld[0] * y[0];
     y[2] -= ld[1] * y[0] + ld[2] * y[1];
     const Eigen::Vector3d yJ(y[0], y[1], y[2]);
-    for (int p = s.colptr[J]; p < s.colptr[J + 1]; ++p) {
-      const double* v = &vals_[9 * static_cast<size_t>(p)];
-      double* t = w + 3 * s.rowblk[p];
+    for (int p = colptr[J], end = colptr[J + 1]; p < end; ++p) {
+      const double* v = vals + 9 * static_cast<size_t>(p);
+      double* t = w + 3 * rowblk[p];
       Eigen::Map<Eigen::Vector2d>(t) -= block3::top(v) * yJ;
       t[2] -= block3::bottom(v).dot(yJ);
     }
@@ -185,9 +190,9 @@ void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
   for (int J = nb - 1; J >= 0; --J) {
     Eigen::Matrix<double, 2, 3> top = Eigen::Matrix<double, 2, 3>::Zero();
     Eigen::RowVector3d bottom = Eigen::RowVector3d::Zero();
-    for (int p = s.colptr[J]; p < s.colptr[J + 1]; ++p) {
-      const double* v = &vals_[9 * static_cast<size_t>(p)];
-      const double* t = w + 3 * s.rowblk[p];
+    for (int p = colptr[J], end = colptr[J + 1]; p < end; ++p) {
+      const double* v = vals + 9 * static_cast<size_t>(p);
+      const double* t = w + 3 * rowblk[p];
       top += block3::top(v).cwiseProduct(Eigen::Map<const Eigen::Vector2d>(t).replicate<1, 3>());
       bottom += t[2] * block3::bottom(v);
     }
