@@ -45,19 +45,4 @@ void BlockMatrix3::multiply(const Eigen::VectorXd& x, Eigen::VectorXd& y) const 
   }
 }
 
-void BlockMatrix3::add_transposed_rows(const Eigen::VectorXd& x, const std::vector<int>& rows,
-                                       Eigen::VectorXd& y) const {
-  for (const int i : rows) add_transposed_row(x, i, y);
-}
-
-void BlockMatrix3::add_transposed_row(const Eigen::VectorXd& x, int i, Eigen::VectorXd& y) const {
-  const Eigen::Vector2d top = x.segment<2>(3 * i);
-  const double bottom = x[3 * i + 2];
-  for (int p = rowptr_[i]; p < rowptr_[i + 1]; ++p) {
-    const double* v = &vals_[9 * static_cast<size_t>(p)];
-    y.segment<3>(3 * colblk_[p]).noalias() +=
-        block3::top(v).transpose() * top + block3::bottom(v).transpose() * bottom;
-  }
-}
-
 }  // namespace bubble

@@ -24,17 +24,12 @@ class BlockMatrix3 {
   explicit BlockMatrix3(const Eigen::SparseMatrix<double>& A);
   // y = A x
   void multiply(const Eigen::VectorXd& x, Eigen::VectorXd& y) const;
-  // y += A^T x for an x that is zero outside the given block rows.
-  void add_transposed_rows(const Eigen::VectorXd& x, const std::vector<int>& rows,
-                           Eigen::VectorXd& y) const;
 
  private:
-  void add_transposed_row(const Eigen::VectorXd& x, int i,
-                          Eigen::VectorXd& y) const;  // block row i
-  int rows_ = 0, cols_ = 0;                           // in blocks
-  std::vector<int> rowptr_;                           // rows_ + 1
-  std::vector<int> colblk_;                           // column block of each stored block
-  std::vector<double> vals_;                          // 9 per block, layout of block3
+  int rows_ = 0, cols_ = 0;   // in blocks
+  std::vector<int> rowptr_;   // rows_ + 1
+  std::vector<int> colblk_;   // column block of each stored block
+  std::vector<double> vals_;  // 9 per block, layout of block3
 };
 
 }  // namespace bubble

@@ -330,8 +330,7 @@ struct GroupLassoSolver::SolveState {
   Eigen::VectorXd dy, da;  // line-search scratch
   bool accelerate;
   Anderson aa;
-  Eigen::VectorXd u, g;          // Anderson input and output
-  std::vector<int> force_nodes;  // dual_bound scratch: nodes where x leaves a force
+  Eigen::VectorXd u, g;  // Anderson input and output
   double pobj = 0, gap = 0, rp = 0;
   // Check schedule: the gap and iteration of the last check since rho last moved.
   int next_check = 0, next_rho_check = 0, last_check = 0;
@@ -525,8 +524,8 @@ void GroupLassoSolver::anderson_step(SolveState& st) {
   yh_ = st.rho * st.g.tail(m);
 }
 
-// The certificate at the current iterate: one product with A^T plus the support's share of
-// a second (dual_bound); A x is kept up to date by over_relax.
+// The certificate at the current iterate: two products with A^T (dual_bound); A x is kept up
+// to date by over_relax.
 void GroupLassoSolver::measure(SolveState& st) const {
   st.pobj = objective(st.Ax);
   st.gap = std::max(st.pobj - dual_bound(st), 0.0);
@@ -576,11 +575,10 @@ double GroupLassoSolver::objective(const Eigen::VectorXd& Ax) const {
 // cheaply: (a) the ADMM multiplier projected on its balls; (b) the same with the nodes where
 // x leaves a force replaced by the multiplier x asks for; the best point on the segment a-b,
 // then on the segment to the best point of the previous check, then the best scaling along
-// the ray. All these stay feasible and need one product with A^T, plus the support rows of a
-// second.
+// the ray. All these stay feasible and need two products with A^T.
 double GroupLassoSolver::dual_bound(SolveState& st) const {
   projected_multiplier(st.a);
-  force_multiplier(st.a, st.rho, st.b, st.force_nodes, st);
+  force_multiplier(st.Ax, st.rho, st.b);
   maximize_on_segment(st.a, st.b, st);
   if (st.have_best) maximize_on_segment(st.a, st.best, st);
   best_scaling(st.a, st.best);
@@ -595,23 +593,18 @@ void GroupLassoSolver::projected_multiplier(DualPoint& p) const {
 }
 
 // Where x leaves a force F_i, optimality asks for y_i = w_i F_i / ||F_i||; elsewhere the
-// projected ADMM multiplier, i.e. the point `projected`. The two differ only on the force
-// nodes (the support, few in most frames), so A^T y is corrected there instead of recomputed.
-void GroupLassoSolver::force_multiplier(const DualPoint& projected, double rho, DualPoint& p,
-                                        std::vector<int>& force_nodes, SolveState& st) const {
-  force_nodes.clear();
-  p.y = projected.y;
+// projected ADMM multiplier.
+void GroupLassoSolver::force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const {
+  p.y = yh_;
   for (int i = 0; i < n_; ++i) {
-    const Eigen::Vector3d f = st.Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const Eigen::Vector3d f = Ax.segment<3>(3 * i) + bh_.segment<3>(3 * i);
     const double fn = f.norm();
-    if (fn > 1e-9 * wh_(i) / rho) {
+    if (fn > 1e-9 * wh_(i) / rho)
       p.y.segment<3>(3 * i) = wh_(i) / fn * f;
-      force_nodes.push_back(i);
-    }
+    else
+      project_on_ball(p.y.segment<3>(3 * i), wh_(i));
   }
-  st.dy = p.y - projected.y;
-  p.aty = projected.aty;
-  Ab_.add_transposed_rows(st.dy, force_nodes, p.aty);
+  AbT_.multiply(p.y, p.aty);
 }
 
 // The dual is a concave quadratic along the segment p1-p2 and every point of it is feasible:

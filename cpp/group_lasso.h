@@ -26,9 +26,9 @@
 // Termination uses the duality gap: every dual iterate is dual feasible (||y_i|| <= w_i), so
 // objective(x) - dual(y) bounds the suboptimality of the returned x. "solved" means
 // gap <= eps_abs + eps_rel * objective, confirmed with A x recomputed. A check is cheap: A x
-// is carried by the over-relaxation, the dual bound takes one product with A^T plus the
-// support's rows of a second. The next check is placed where the gap's rate since the last
-// one says it reaches the tolerance, check_interval iterations at most.
+// is carried by the over-relaxation, the dual bound takes two products with A^T. The next check is
+// placed where the gap's rate since the last one says it reaches the tolerance, check_interval
+// iterations at most.
 #pragma once
 
 #include <Eigen/Core>
@@ -145,8 +145,7 @@ class GroupLassoSolver {
   double objective(const Eigen::VectorXd& Ax) const;
   double dual_bound(SolveState& st) const;
   void projected_multiplier(DualPoint& p) const;
-  void force_multiplier(const DualPoint& projected, double rho, DualPoint& p,
-                        std::vector<int>& force_nodes, SolveState& st) const;
+  void force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const;
   void maximize_on_segment(DualPoint& p1, const DualPoint& p2, SolveState& st) const;
   void best_scaling(const DualPoint& p, DualPoint& out) const;
   double dual_value(const DualPoint& p) const;
