@@ -4,33 +4,44 @@
 // fill-reducing ordering of the *nodes* (AMD on the node graph) the factor L is made of dense
 // 3 x 3 blocks. Eigen's SimplicialLDLT computes the numbers; they are then repacked into
 // block-compressed columns, which makes the triangular solves (the per-iteration cost of
-// ADMM) several times faster than scalar CSC solves. The block solve is checked against the
+// ADMM) several times faster than scalar CSC solves. The blocks are stored so that the solves
+// use packed arithmetic (block_matrix.h, block3). The block solve is checked against the
 // matrix once after factorizing.
+//
+// The ordering, the symbolic analysis and the repacking map depend only on the sparsity
+// pattern; they are computed once (Structure) and shared by every factorization of a matrix
+// with the same pattern (the solver refactors P + sigma I + rho A^T A as rho moves).
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
+#include <memory>
 #include <vector>
 
 namespace bubble {
 
 class BlockLDLT {
  public:
+  struct Structure;
   // M: symmetric positive definite, size 3n x 3n, dofs grouped per node. Throws InputError
   // if the factorization fails.
   explicit BlockLDLT(const Eigen::SparseMatrix<double>& M);
+  // The same with the pattern analysis of an earlier factorization, reused when M has the
+  // same sparsity pattern (otherwise analysed afresh).
+  BlockLDLT(const Eigen::SparseMatrix<double>& M, std::shared_ptr<Structure> structure);
   // x = M^{-1} b. x and b may not alias.
   void solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const;
-  long block_count() const { return static_cast<long>(rowblk_.size()); }
+  long block_count() const;
+  const std::shared_ptr<Structure>& structure() const { return structure_; }
 
  private:
-  int nb_ = 0;
-  std::vector<int> orig_;      // permuted node k -> original node
+  void factorize(const Eigen::SparseMatrix<double>& M);
+
+  std::shared_ptr<Structure> structure_;
   Eigen::VectorXd dinv_;       // 3 nb, permuted order
   std::vector<double> ldiag_;  // per block column: l10, l20, l21 of its unit-lower diagonal
-  std::vector<int> colptr_;    // nb + 1
-  std::vector<int> rowblk_;    // row block of each stored block
-  std::vector<double> vals_;   // 9 per stored block, row-major L(3I + r, 3J + c)
+  std::vector<double> vals_;   // 9 per stored block (layout of block3), by block columns
   mutable Eigen::VectorXd w_;
 };
 

@@ -17,7 +17,7 @@ BlockMatrix3::BlockMatrix3(const Eigen::SparseMatrix<double>& A) {
       const int r = static_cast<int>(it.row());
       auto& blk = rows[r / 3][col / 3];
       if (blk.empty()) blk.fill(0.0);
-      blk[3 * (r % 3) + col % 3] = it.value();
+      blk[block3::offset(r % 3, col % 3)] = it.value();
     }
   rowptr_.assign(rows_ + 1, 0);
   for (int i = 0; i < rows_; ++i) {
@@ -31,34 +31,17 @@ BlockMatrix3::BlockMatrix3(const Eigen::SparseMatrix<double>& A) {
 
 void BlockMatrix3::multiply(const Eigen::VectorXd& x, Eigen::VectorXd& y) const {
   y.resize(3 * rows_);
-  const double* xp = x.data();
   for (int i = 0; i < rows_; ++i) {
-    double s0 = 0, s1 = 0, s2 = 0;
+    Eigen::Vector2d top = Eigen::Vector2d::Zero();
+    double bottom = 0;
     for (int p = rowptr_[i]; p < rowptr_[i + 1]; ++p) {
       const double* v = &vals_[9 * static_cast<size_t>(p)];
-      const double* t = xp + 3 * colblk_[p];
-      s0 += v[0] * t[0] + v[1] * t[1] + v[2] * t[2];
-      s1 += v[3] * t[0] + v[4] * t[1] + v[5] * t[2];
-      s2 += v[6] * t[0] + v[7] * t[1] + v[8] * t[2];
+      const Eigen::Vector3d xj = x.segment<3>(3 * colblk_[p]);
+      top.noalias() += block3::top(v) * xj;
+      bottom += block3::bottom(v).dot(xj);
     }
-    y[3 * i] = s0;
-    y[3 * i + 1] = s1;
-    y[3 * i + 2] = s2;
-  }
-}
-
-void BlockMatrix3::multiply_transposed(const Eigen::VectorXd& x, Eigen::VectorXd& y) const {
-  y.setZero(3 * cols_);
-  double* yp = y.data();
-  for (int i = 0; i < rows_; ++i) {
-    const double x0 = x[3 * i], x1 = x[3 * i + 1], x2 = x[3 * i + 2];
-    for (int p = rowptr_[i]; p < rowptr_[i + 1]; ++p) {
-      const double* v = &vals_[9 * static_cast<size_t>(p)];
-      double* t = yp + 3 * colblk_[p];
-      t[0] += v[0] * x0 + v[3] * x1 + v[6] * x2;
-      t[1] += v[1] * x0 + v[4] * x1 + v[7] * x2;
-      t[2] += v[2] * x0 + v[5] * x1 + v[8] * x2;
-    }
+    y.segment<2>(3 * i) = top;
+    y[3 * i + 2] = bottom;
   }
 }
 

@@ -48,15 +48,15 @@ class Anderson {
       const int k = static_cast<int>(std::min<long>(count_, mem_));
       for (int j = 0; j < k; ++j) H_(col, j) = H_(j, col) = dF_.col(col).dot(dF_.col(j));
     }
-    f_prev_ = f_;
     g_prev_ = g;
     fprev_norm_ = fn;
     have_prev_ = true;
     const int k = static_cast<int>(std::min<long>(count_, mem_));
+    if (k > 0) rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
+    f_prev_.swap(f_);
     if (k == 0) return;
     Eigen::MatrixXd H = H_.topLeftCorner(k, k);
     H.diagonal().array() += 1e-10 * H.diagonal().maxCoeff() + 1e-300;
-    rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
     const Eigen::VectorXd gamma = H.ldlt().solve(rhs_);
     if (!gamma.allFinite()) return;
     g.noalias() -= dG_.leftCols(k) * gamma;
@@ -198,6 +198,7 @@ void GroupLassoSolver::setup() {
   AhT_.makeCompressed();
   AtA_ = (AhT_ * Ah_).pruned();
   Ab_ = BlockMatrix3(Ah_);
+  AbT_ = BlockMatrix3(AhT_);
   AtA_.makeCompressed();
   // Cost scale: the mean of P's diagonal becomes one (OSQP's rule without a linear term).
   Pd_ = 2 * c_ * D_.cwiseAbs2();
@@ -231,7 +232,11 @@ const BlockLDLT& GroupLassoSolver::factor(int idx, int* count) {
   SparseMatrixd M = AtA_ * rho_of(idx);
   for (int j = 0; j < M.cols(); ++j) M.coeffRef(j, j) += Pd_(j) + settings_.sigma;
   const auto t0 = Clock::now();
-  auto f = std::make_unique<BlockLDLT>(M);
+  M.makeCompressed();
+  // Every rho gives the same pattern: the ordering and symbolic analysis are shared.
+  std::shared_ptr<BlockLDLT::Structure> structure;
+  if (!factors_.empty()) structure = factors_.begin()->second->structure();
+  auto f = std::make_unique<BlockLDLT>(M, structure);
   factor_ms_ += ms_since(t0);
   ++*count;
   return *(factors_[idx] = std::move(f));
@@ -304,7 +309,6 @@ struct GroupLassoSolver::SolveState {
         zn(m),
         tmp(m),
         Ax(m),
-        ATy(nfd),
         a(m, nfd),
         b(m, nfd),
         best(m, nfd),
@@ -318,16 +322,19 @@ struct GroupLassoSolver::SolveState {
   bool warm = false;           // started from the previous frame's solution
   double raw_force_scale = 0;  // rms nodal force at dU = 0, floors the force scale of rho
   const BlockLDLT* ldlt = nullptr;
-  double rho = 0;
+  double rho = 0, inv_rho = 0;
   Eigen::VectorXd rhs, xt, zt, zr, v, zn, tmp;  // iteration scratch
-  Eigen::VectorXd Ax, ATy;                      // products at the checked iterate
-  DualPoint a, b, best;                         // dual candidates, best = last check's bound
+  Eigen::VectorXd Ax;    // A x at the current x, kept up to date by over_relax (no product)
+  DualPoint a, b, best;  // dual candidates, best = last check's bound
   bool have_best = false;
   Eigen::VectorXd dy, da;  // line-search scratch
   bool accelerate;
   Anderson aa;
   Eigen::VectorXd u, g;  // Anderson input and output
-  double pobj = 0, gap = 0, rp = 0, rd = 0;
+  double pobj = 0, gap = 0, rp = 0;
+  // Check schedule: the gap and iteration of the last check since rho last moved.
+  int next_check = 0, next_rho_check = 0, last_check = 0;
+  double last_gap = 0;
 };
 
 SolverResult GroupLassoSolver::solve() {
@@ -349,22 +356,32 @@ SolverResult GroupLassoSolver::solve() {
   SolveState st(t0, 3 * n_, 3 * nf_, settings_.anderson_memory);
   st.warm = settings_.warm_start && have_prev_;
   start_iterates();
+  st.Ax = zh_;
   st.raw_force_scale = std::sqrt(bh_.squaredNorm() / n_);
   set_frame_rho(st.raw_force_scale);
   use_rho(st, &info.factorizations);
   info.status = SolverStatus::max_iter_reached;
+  st.next_check = settings_.check_interval;
+  st.next_rho_check = settings_.adaptive_rho_interval;
   int k = 0;
   for (k = 1; k <= settings_.max_iter; ++k) {
     admm_iteration(st);
-    if (k % settings_.check_interval != 0 && k != settings_.max_iter) continue;
+    if (k < st.next_check && k != settings_.max_iter) continue;
     measure(st);
-    if (const auto status = termination(st)) {
+    auto status = termination(st);
+    // The certificate is confirmed with A x recomputed, not only the running update of it.
+    if (status == SolverStatus::solved) status = (exact_measure(st), termination(st));
+    if (status) {
       info.status = *status;
       break;
     }
-    if (settings_.adaptive_rho && k % settings_.adaptive_rho_interval < settings_.check_interval)
+    schedule_check(st, k);
+    if (settings_.adaptive_rho && k >= st.next_rho_check) {
+      st.next_rho_check += settings_.adaptive_rho_interval;
       adapt_rho(st, &info.factorizations);
+    }
   }
+  if (info.status != SolverStatus::solved) exact_measure(st);
   write_result(st, std::min(k, settings_.max_iter), res);
   remember_solution(st, res);
   info.solve_time_ms = ms_since(t0);
@@ -428,6 +445,7 @@ void GroupLassoSolver::set_frame_rho(double raw_force_scale) {
 void GroupLassoSolver::use_rho(SolveState& st, int* factorizations) {
   st.ldlt = &factor(rho_idx_, factorizations);
   st.rho = rho_of(rho_idx_);
+  st.inv_rho = 1.0 / st.rho;  // the iterations multiply: a division per entry is slow
 }
 
 // The frame rule on the current iterate: a frame unlike the last one (a contact made or
@@ -443,13 +461,14 @@ void GroupLassoSolver::adapt_rho(SolveState& st, int* factorizations) {
   rho_idx_ = std::clamp(rho_idx_, -80, 80);
   use_rho(st, factorizations);
   st.aa.reset();
+  st.last_check = 0;  // the gap's rate of decrease was measured at the old rho
 }
 
 void GroupLassoSolver::admm_iteration(SolveState& st) {
   const int m = 3 * n_;
   if (st.accelerate) {
     st.u.head(m) = zh_;
-    st.u.tail(m) = yh_ / st.rho;
+    st.u.tail(m) = st.inv_rho * yh_;
   }
   x_update(st);
   over_relax(st);
@@ -462,25 +481,27 @@ void GroupLassoSolver::admm_iteration(SolveState& st) {
 // this is two triangular solves. zt = A xt feeds the over-relaxation.
 void GroupLassoSolver::x_update(SolveState& st) const {
   st.tmp.noalias() = st.rho * zh_ - yh_;
-  Ab_.multiply_transposed(st.tmp, st.rhs);
+  AbT_.multiply(st.tmp, st.rhs);
   st.rhs += settings_.sigma * xh_;
   st.ldlt->solve(st.rhs, st.xt);
   Ab_.multiply(st.xt, st.zt);
 }
 
+// x moves only here, so A x follows from zt = A xt without a product.
 void GroupLassoSolver::over_relax(SolveState& st) {
   const double alpha = settings_.alpha;
   xh_ = alpha * st.xt + (1 - alpha) * xh_;
+  st.Ax = alpha * st.zt + (1 - alpha) * st.Ax;
   st.zr = alpha * st.zt + (1 - alpha) * zh_;
 }
 
 // The prox of sum_i wh_i ||z_i + bh_i|| / rho at v: the penalty acts on the force z + b, so
 // shrink u = v + b blockwise and shift back.
 void GroupLassoSolver::z_update(SolveState& st) const {
-  st.v = st.zr + yh_ / st.rho;
+  st.v = st.zr + st.inv_rho * yh_;
   for (int i = 0; i < n_; ++i) {
     const Eigen::Vector3d u = st.v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
-    const double nu = u.norm(), t = wh_(i) / st.rho;
+    const double nu = u.norm(), t = wh_(i) * st.inv_rho;
     const double k = nu > t ? 1.0 - t / nu : 0.0;
     st.zn.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
   }
@@ -497,19 +518,49 @@ void GroupLassoSolver::dual_update(SolveState& st) {
 void GroupLassoSolver::anderson_step(SolveState& st) {
   const int m = 3 * n_;
   st.g.head(m) = zh_;
-  st.g.tail(m) = yh_ / st.rho;
+  st.g.tail(m) = st.inv_rho * yh_;
   st.aa.step(st.u, st.g);
   zh_ = st.g.head(m);
   yh_ = st.rho * st.g.tail(m);
 }
 
+// The certificate at the current iterate: two products with A^T (dual_bound); A x is kept up
+// to date by over_relax.
 void GroupLassoSolver::measure(SolveState& st) const {
-  Ab_.multiply(xh_, st.Ax);
-  Ab_.multiply_transposed(yh_, st.ATy);
   st.pobj = objective(st.Ax);
   st.gap = std::max(st.pobj - dual_bound(st), 0.0);
+}
+
+// measure() with A x recomputed from x and the dual bound of the last check: what the result
+// reports, exact up to rounding in one product.
+void GroupLassoSolver::exact_measure(SolveState& st) const {
+  Ab_.multiply(xh_, st.Ax);
+  st.pobj = objective(st.Ax);
+  if (st.have_best) st.gap = std::max(st.pobj - dual_value(st.best), 0.0);
   st.rp = (st.Ax - zh_).cwiseProduct(Einv_).lpNorm<Eigen::Infinity>();
-  st.rd = (Pd_.cwiseProduct(xh_) + st.ATy).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+}
+
+// ||P x + A^T y||_inf at the returned iterate, for the report only.
+double GroupLassoSolver::dual_residual() const {
+  Eigen::VectorXd aty;
+  AbT_.multiply(yh_, aty);
+  return (Pd_.cwiseProduct(xh_) + aty).cwiseProduct(Dinv_).lpNorm<Eigen::Infinity>() / s_;
+}
+
+// The gap falls roughly geometrically: from its rate since the last check, the next check
+// lands where the gap is expected to reach the tolerance, check_interval at most, so a solve
+// stops within an iteration or two of certification instead of up to check_interval - 1 late.
+void GroupLassoSolver::schedule_check(SolveState& st, int k) const {
+  int step = settings_.check_interval;
+  const double tol = settings_.eps_abs + settings_.eps_rel * std::abs(st.pobj);
+  if (st.last_check > 0 && st.gap < st.last_gap && st.gap > tol) {
+    const double rate = std::log(st.last_gap / st.gap) / (k - st.last_check);
+    const double needed = std::log(st.gap / tol) / rate;
+    step = static_cast<int>(std::clamp(std::ceil(needed), 1.0, double(step)));
+  }
+  st.last_check = k;
+  st.last_gap = st.gap;
+  st.next_check = k + step;
 }
 
 // Unscaled and unitless, so that eps_abs means the same on every mesh and in every unit.
@@ -538,7 +589,7 @@ double GroupLassoSolver::dual_bound(SolveState& st) const {
 void GroupLassoSolver::projected_multiplier(DualPoint& p) const {
   p.y = yh_;
   for (int i = 0; i < n_; ++i) project_on_ball(p.y.segment<3>(3 * i), wh_(i));
-  Ab_.multiply_transposed(p.y, p.aty);
+  AbT_.multiply(p.y, p.aty);
 }
 
 // Where x leaves a force F_i, optimality asks for y_i = w_i F_i / ||F_i||; elsewhere the
@@ -553,7 +604,7 @@ void GroupLassoSolver::force_multiplier(const Eigen::VectorXd& Ax, double rho, D
     else
       project_on_ball(p.y.segment<3>(3 * i), wh_(i));
   }
-  Ab_.multiply_transposed(p.y, p.aty);
+  AbT_.multiply(p.y, p.aty);
 }
 
 // The dual is a concave quadratic along the segment p1-p2 and every point of it is feasible:
@@ -611,7 +662,7 @@ void GroupLassoSolver::write_result(const SolveState& st, int iterations, Solver
   info.objective = st.pobj;
   info.duality_gap = st.gap;
   info.primal_residual = st.rp;
-  info.dual_residual = st.rd;
+  info.dual_residual = dual_residual();
   info.rho = st.rho;
   const Eigen::VectorXd x = D_.cwiseProduct(xh_);
   for (int i = 0; i < n_; ++i)
@@ -626,7 +677,6 @@ void GroupLassoSolver::remember_solution(SolveState& st, const SolverResult& res
     have_prev_ = false;
     return;
   }
-  Ab_.multiply(xh_, st.Ax);
   force_scale_ = std::sqrt((st.Ax + bh_).squaredNorm() / n_);
   V_prev_ = U_ + res.dU;
   dual_prev_ = res.dual;

@@ -464,6 +464,26 @@ def test_contact_made_and_released_between_frames_stays_fast(name):
         assert res.info.iterations <= 120, (depth, seed, res.info.iterations)
 
 
+def test_reported_certificate_belongs_to_the_returned_displacements():
+    # A x is carried along the iterations, checks come early when the gap's rate predicts
+    # certification, and factors at a new rho reuse the first one's symbolic analysis: the
+    # reported objective must still be the objective of the returned dU, recomputed here from
+    # scratch, on frames that move rho (untouched -> contact -> released).
+    model = _model("medium")
+    s = GroupLassoSolver(model, K_F, K_U)
+    tol = SolverSettings().eps_abs + SolverSettings().eps_rel
+    rhos = set()
+    for depth, seed in [(0.0, 1), (10e-3, 2), (10e-3, 3), (0.0, 4), (6e-3, 5)]:
+        U, dp = synthetic_field(model.mesh, depth=depth, noise=1e-4, seed=seed)
+        res = s.solve_frame(U, dp)
+        assert res.info.status == "solved"
+        recomputed = objective(model, U, dp, res.dU)
+        assert res.info.objective == pytest.approx(recomputed, rel=1e-9)
+        assert res.info.duality_gap <= tol * max(recomputed, 1.0)
+        rhos.add(res.info.rho)
+    assert len(rhos) >= 2  # the sequence did refactor
+
+
 def test_overflowing_data_reports_non_finite_input():
     # Finite inputs whose forces overflow double precision: a status, not an exception.
     model = MembraneModel(Mesh.preset("coarse"), Material(E=1e300))

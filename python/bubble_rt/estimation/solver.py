@@ -56,7 +56,8 @@ class SolverSettings:
         eps_rel: relative duality-gap tolerance: "solved" guarantees
             objective - optimum <= eps_abs + eps_rel * objective.
         max_iter: iteration cap ("max_iter_reached" status, the last iterate is returned).
-        check_interval: iterations between termination checks.
+        check_interval: most iterations between termination checks; a check comes earlier
+            when the duality gap's rate since the last one predicts certification sooner.
         time_limit: seconds per warm-started solve, 0 = none ("time_limit_reached" status).
             A cold solve (the first, or after ``cold_start``) runs to certification or
             ``max_iter``: stopped early, its multipliers sit on their bounds at most nodes and
