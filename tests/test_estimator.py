@@ -182,7 +182,11 @@ def test_refit_removes_the_lasso_shrinkage(force):
     lasso_net = float(np.linalg.norm(est.model.net_force(lasso_F)))
     assert lasso_net < force - 0.05
     assert np.linalg.norm(e.net_force) == pytest.approx(force, rel=1e-6)
-    assert set(np.flatnonzero(e.support)) == set(nodes)
+    # the support (multipliers within support_tol of their bound) holds the loaded nodes and
+    # may hold some around them, where the exact refit puts no force
+    assert set(nodes) <= set(np.flatnonzero(e.support))
+    off = np.setdiff1d(np.arange(len(e.node_forces)), nodes)
+    assert np.abs(e.node_forces[off][est.mesh.interior[off]]).max() < 1e-6 * force
     assert set(np.flatnonzero(e.contact)) <= set(nodes) and e.contact.any()
     assert "refit" in e.timings_ms
 

@@ -2,7 +2,8 @@
 
 ``ForceEstimator.estimate(U, dp)`` runs three steps on the measured displacements:
 
-1. **group lasso** (the paper's regularised estimate, ADMM in C++): which nodes carry force,
+1. **group lasso** (the paper's regularised estimate, ADMM in C++): which nodes carry force
+   (those whose multiplier is within ``support_tol`` of its bound),
    on the membrane linearised about its inflated reference (``MembraneModel(...,
    inflation_pa)``: material + geometric stiffness of the inflation tension + load stiffness
    of the rest pressure);
@@ -51,8 +52,6 @@ DEFAULT_MATERIAL = Material(
 )
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
-#: A node is in the lasso's support when its multiplier is within this of its weight.
-_SUPPORT_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -73,6 +72,8 @@ class EstimatorConfig:
         k_const: absolute contact threshold on normal pressure (Pa).
         k_linear: contact threshold relative to the area-weighted mean normal pressure (-).
         k_peak: contact threshold relative to the peak normal pressure over the support (-).
+        support_tol: support rule (-): a node carries force when its multiplier is within this
+            fraction of its bound, ``||y_i|| >= (1 - support_tol) k_f`` (``support``).
         inflation_pa: rest gauge pressure (Pa) the membrane is linearised about, used when the
             estimator is not given a reference (a reference's pressure replaces it).
         ambient_pa: ambient pressure (Pa), subtracted from an absolute reference pressure: it
@@ -87,6 +88,7 @@ class EstimatorConfig:
     k_const: float = ESTIMATOR_PARAMS["k_const"].default
     k_linear: float = ESTIMATOR_PARAMS["k_linear"].default
     k_peak: float = 0.5
+    support_tol: float = ESTIMATOR_PARAMS["support_tol"].default
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
     ambient_pa: float = ESTIMATOR_PARAMS["ambient_pa"].default
     solver: SolverSettings = field(default_factory=SolverSettings)
@@ -101,6 +103,9 @@ class EstimatorConfig:
         _validate.finite_scalar("k_const", self.k_const)
         _validate.finite_scalar("k_linear", self.k_linear)
         _validate.finite_scalar("k_peak", self.k_peak)
+        problem = ESTIMATOR_PARAMS["support_tol"].range.problem(self.support_tol)
+        if problem is not None:
+            raise ValueError(f"support_tol {problem}")
         _validate.positive("inflation_pa", self.inflation_pa)
         _validate.positive("ambient_pa", self.ambient_pa)
 
@@ -208,11 +213,18 @@ class ForceEstimator:
         return est
 
     def support(self, dual: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """The group lasso's support from its multipliers: interior nodes whose multiplier
-        sits on its bound, ``||y_i|| >= (1 - 1e-3) k_f`` (off the support ``||y_i|| < k_f``)."""
+        """The support from the group lasso's multipliers: interior nodes whose multiplier is
+        within ``support_tol`` of its bound, ``||y_i|| >= (1 - support_tol) k_f``.
+
+        The lasso's own support (multiplier on its bound) tends to point loads: 2-5 nodes on
+        every mesh, so its area fell like 1 / N. The multiplier field ``||y_i|| / k_f`` is
+        mesh-independent (a Green's-function average of the weighted residual), so a fixed
+        fraction of the bound gives a support of physical size; it also keeps the nodes of a
+        first light touch whose multipliers have not yet reached the bound
+        (docs/mesh-convergence.md)."""
         y = np.linalg.norm(np.asarray(dual, dtype=np.float64), axis=1)
         return np.ascontiguousarray(
-            self._interior & (y >= (1.0 - _SUPPORT_TOLERANCE) * self.config.k_f)
+            self._interior & (y >= (1.0 - self.config.support_tol) * self.config.k_f)
         )
 
     def _post(

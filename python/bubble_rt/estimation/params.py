@@ -102,6 +102,14 @@ ESTIMATOR_PARAMS: dict[str, EstimatorParam] = {
             live=True,
         ),
         EstimatorParam(
+            "support_tol",
+            0.2,
+            "support rule: a node carries force when its lasso multiplier is within this "
+            "fraction of its bound (the multiplier field does not depend on the node count)",
+            ParamRange(0.0, 0.9),
+            "support_tol",
+        ),
+        EstimatorParam(
             "ambient_pa",
             SIM.ambient_pa,
             "ambient pressure, subtracted from absolute pressure readings; it sets the rest "
