@@ -182,7 +182,11 @@ def test_refit_removes_the_lasso_shrinkage(force):
     lasso_net = float(np.linalg.norm(est.model.net_force(lasso_F)))
     assert lasso_net < force - 0.05
     assert np.linalg.norm(e.net_force) == pytest.approx(force, rel=1e-6)
-    assert set(np.flatnonzero(e.support)) == set(nodes)
+    # the support (multipliers within support_tol of their bound) holds the loaded nodes and
+    # may hold some around them, where the exact refit puts no force
+    assert set(nodes) <= set(np.flatnonzero(e.support))
+    off = np.setdiff1d(np.arange(len(e.node_forces)), nodes)
+    assert np.abs(e.node_forces[off][est.mesh.interior[off]]).max() < 1e-6 * force
     assert set(np.flatnonzero(e.contact)) <= set(nodes) and e.contact.any()
     assert "refit" in e.timings_ms
 
@@ -246,3 +250,30 @@ def test_estimator_is_finite_at_every_range_limit():
             e = est.estimate(U, 320.0)
             assert e.info.status == "solved", (name, v)
             assert np.isfinite(e.node_forces).all(), (name, v)
+
+
+# ------------------------------------------------------------------ first light touch
+def test_first_light_touch_frame_is_detected():
+    # Issue 18 item 6: the first 0.1-0.2 N frame of a touch (simulated point press, calibration
+    # seed 1000, trajectory 2, frame 11: 0.12 N) has lasso multipliers just under their bound.
+    # The lasso's exact support (support_tol 1e-3) is then empty and the touch missed; the
+    # support within support_tol of the bound keeps the touched node and the refit reads it.
+    from bubble_rt import eval as ev
+    from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
+
+    traj = ev.simulate_trajectory("point", 2, 20, ev.CALIB_SEED_BASE)
+    mesh = ev.estimator_mesh("medium", traj)
+    ref = Reference.capture(traj.reference_frames)
+    tracker = DeformationTracker(mesh, traj.camera, ref, FlowSettings())
+    cfgs = {"default": EstimatorConfig(), "exact support": EstimatorConfig(support_tol=1e-3)}
+    ests = {k: ForceEstimator(mesh, c, ref) for k, c in cfgs.items()}
+    first = 11
+    for fr in traj.frames[: first + 1]:
+        d = tracker.track(fr)
+        out = {k: e.estimate(d.U, d.dp) for k, e in ests.items()}
+    truth = float(np.linalg.norm(traj.frames[first].truth.net_force))
+    assert 0.1 <= truth <= 0.2
+    assert float(np.linalg.norm(traj.frames[first - 1].truth.net_force)) < 0.1  # the first
+    assert not out["exact support"].contact.any()
+    assert out["default"].contact.any()
+    assert float(np.linalg.norm(out["default"].net_force)) == pytest.approx(truth, rel=0.35)

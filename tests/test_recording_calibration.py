@@ -35,7 +35,9 @@ pytestmark = pytest.mark.timeout(900)
 MESH = "coarse"
 N_FRAMES = 8
 N_REF = 3
-MAX_EVALS = 40
+#: Nelder-Mead budget: with the support within support_tol of the multipliers' bound, 40 ended
+#: 0.16 % above the truth's loss (parameters within 4-12 %); 60 reaches it.
+MAX_EVALS = 60
 #: Pressing trajectories whose forces point different ways (about -z, tilted up to 30 degrees
 #: towards different sides), so that a rotation about every axis is observable.
 SPECS = (("round", 1), ("round", 3), ("point", 1), ("round", 0))

@@ -212,6 +212,8 @@ class EstimatorSection:
     thickness: float = _estimator_option("thickness")
     k_const: float = _estimator_option("k_const")
     k_linear: float = _estimator_option("k_linear")
+    support_tol: float = _estimator_option("support_tol")
+    peak_radius_m: float = _estimator_option("peak_radius_m")
     profile: str = option(
         "auto",
         "sensor profile giving the physical constants (bubble_rt.sensor): auto = punyo for "

@@ -2,7 +2,8 @@
 
 ``ForceEstimator.estimate(U, dp)`` runs three steps on the measured displacements:
 
-1. **group lasso** (the paper's regularised estimate, ADMM in C++): which nodes carry force,
+1. **group lasso** (the paper's regularised estimate, ADMM in C++): which nodes carry force
+   (those whose multiplier is within ``support_tol`` of its bound),
    on the membrane linearised about its inflated reference (``MembraneModel(...,
    inflation_pa)``: material + geometric stiffness of the inflation tension + load stiffness
    of the rest pressure);
@@ -11,8 +12,10 @@
    off the support. The lasso finds the support; its shrinkage (a roughly fixed amount off
    every force group, which erased light touches) is undone;
 3. **contact**: the support nodes whose inward pressure passes the paper's threshold
-   ``max(k_const, k_linear * area-weighted mean p)`` and ``k_peak`` times the support's peak
-   pressure.
+   ``max(k_const, k_linear * area-weighted mean p)`` and whose pressure averaged over a disc of
+   ``peak_radius_m`` reaches ``k_peak`` times that average's peak over the support. Pressures,
+   multipliers and the disc are per area or physical lengths, so the patch does not shrink as
+   the mesh refines (docs/mesh-convergence.md).
 
 Nodal forces, contact pressure, contact mask and net force come from the refitted field.
 ``process(frame)`` runs an attached deformation tracker first.
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from bubble_rt import _validate
@@ -51,8 +55,6 @@ DEFAULT_MATERIAL = Material(
 )
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
-#: A node is in the lasso's support when its multiplier is within this of its weight.
-_SUPPORT_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,10 @@ class EstimatorConfig:
         k_const: absolute contact threshold on normal pressure (Pa).
         k_linear: contact threshold relative to the area-weighted mean normal pressure (-).
         k_peak: contact threshold relative to the peak normal pressure over the support (-).
+        support_tol: support rule (-): a node carries force when its multiplier is within this
+            fraction of its bound, ``||y_i|| >= (1 - support_tol) k_f`` (``support``).
+        peak_radius_m: the ``k_peak`` rule compares normal pressures averaged over the nodes
+            within this distance (m) of each node, the node itself included (``disc_pressure``).
         inflation_pa: rest gauge pressure (Pa) the membrane is linearised about, used when the
             estimator is not given a reference (a reference's pressure replaces it).
         ambient_pa: ambient pressure (Pa), subtracted from an absolute reference pressure: it
@@ -87,6 +93,8 @@ class EstimatorConfig:
     k_const: float = ESTIMATOR_PARAMS["k_const"].default
     k_linear: float = ESTIMATOR_PARAMS["k_linear"].default
     k_peak: float = 0.5
+    support_tol: float = ESTIMATOR_PARAMS["support_tol"].default
+    peak_radius_m: float = ESTIMATOR_PARAMS["peak_radius_m"].default
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
     ambient_pa: float = ESTIMATOR_PARAMS["ambient_pa"].default
     solver: SolverSettings = field(default_factory=SolverSettings)
@@ -101,6 +109,10 @@ class EstimatorConfig:
         _validate.finite_scalar("k_const", self.k_const)
         _validate.finite_scalar("k_linear", self.k_linear)
         _validate.finite_scalar("k_peak", self.k_peak)
+        for key in ("support_tol", "peak_radius_m"):
+            problem = ESTIMATOR_PARAMS[key].range.problem(getattr(self, key))
+            if problem is not None:
+                raise ValueError(f"{key} {problem}")
         _validate.positive("inflation_pa", self.inflation_pa)
         _validate.positive("ambient_pa", self.ambient_pa)
 
@@ -178,6 +190,7 @@ class ForceEstimator:
         self.inflation_pa = float(inflation_pa)
         self.model = MembraneModel(self.mesh, cfg.material, self.inflation_pa)
         self.solver = GroupLassoSolver(self.model, cfg.k_f, cfg.k_u, cfg.solver)
+        self._disc = _disc_matrix(self.mesh.vertices, cfg.peak_radius_m, self.model.areas)
         self._refit = _core._SupportRefit(
             self.model._core, np.ascontiguousarray(self.mesh.boundary, dtype=np.int32)
         )
@@ -208,11 +221,18 @@ class ForceEstimator:
         return est
 
     def support(self, dual: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """The group lasso's support from its multipliers: interior nodes whose multiplier
-        sits on its bound, ``||y_i|| >= (1 - 1e-3) k_f`` (off the support ``||y_i|| < k_f``)."""
+        """The support from the group lasso's multipliers: interior nodes whose multiplier is
+        within ``support_tol`` of its bound, ``||y_i|| >= (1 - support_tol) k_f``.
+
+        The lasso's own support (multiplier on its bound) tends to point loads: 2-5 nodes on
+        every mesh, so its area fell like 1 / N. The multiplier field ``||y_i|| / k_f`` is
+        mesh-independent (a Green's-function average of the weighted residual), so a fixed
+        fraction of the bound gives a support of physical size; it also keeps the nodes of a
+        first light touch whose multipliers have not yet reached the bound
+        (docs/mesh-convergence.md)."""
         y = np.linalg.norm(np.asarray(dual, dtype=np.float64), axis=1)
         return np.ascontiguousarray(
-            self._interior & (y >= (1.0 - _SUPPORT_TOLERANCE) * self.config.k_f)
+            self._interior & (y >= (1.0 - self.config.support_tol) * self.config.k_f)
         )
 
     def _post(
@@ -228,7 +248,10 @@ class ForceEstimator:
         p = m.normal_pressure(F)
         contact = m.contact_mask(p, self.config.k_const, self.config.k_linear) & support
         if contact.any():
-            contact &= p >= self.config.k_peak * float(p[support].max())
+            # the peak of a nodal pressure grows like 1 / spacing where the refit puts a line
+            # load (the support's edge); over a disc of fixed radius it does not
+            pd = self.disc_pressure(p)
+            contact &= pd >= self.config.k_peak * float(pd[support].max())
         return Estimate(
             node_forces=F,
             contact_pressure=P,
@@ -240,6 +263,11 @@ class ForceEstimator:
             support=support,
         )
 
+    def disc_pressure(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(N,) Pa: the normal pressure ``p`` (N, Pa) averaged over each node's disc of
+        ``peak_radius_m``: the normal force on the disc's nodes over their area."""
+        return np.asarray(self._disc @ (p * self.model.areas), dtype=np.float64)
+
     def reconfigure(self, **changes: Any) -> None:
         """Change config fields in place (EstimatorConfig field names).
 
@@ -248,7 +276,11 @@ class ForceEstimator:
         K, the solver and the refit (tenths of a second; seconds on the fine mesh).
         """
         new = dataclasses.replace(self.config, **changes)  # validates
-        if (new.material, new.ambient_pa) != (self.config.material, self.config.ambient_pa):
+        if (new.material, new.ambient_pa, new.peak_radius_m) != (
+            self.config.material,
+            self.config.ambient_pa,
+            self.config.peak_radius_m,
+        ):
             self.config = new
             self._build(new.gauge_pressure(self.reference_pressure_pa))
         else:
@@ -257,3 +289,21 @@ class ForceEstimator:
             if new.solver != self.config.solver:
                 self.solver.set_settings(new.solver)
         self.config = new
+
+
+def _disc_matrix(
+    vertices: NDArray[np.float64], radius: float, areas: NDArray[np.float64]
+) -> sp.csr_matrix:
+    """(N x N) sparse: row i averages a per-node force over the nodes within ``radius`` (m) of
+    node i (i included), ``(D @ (p a))_i = sum_j p_j a_j / sum_j a_j`` over that disc."""
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(vertices, dtype=np.float64)
+    n = len(X)
+    pairs = cKDTree(X).query_pairs(radius, output_type="ndarray") if radius > 0 else None
+    if pairs is None or len(pairs) == 0:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
+    B = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    return sp.csr_matrix(sp.diags(1.0 / (B @ np.asarray(areas, dtype=np.float64))) @ B)

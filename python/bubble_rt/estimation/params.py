@@ -102,6 +102,22 @@ ESTIMATOR_PARAMS: dict[str, EstimatorParam] = {
             live=True,
         ),
         EstimatorParam(
+            "support_tol",
+            0.2,
+            "support rule: a node carries force when its lasso multiplier is within this "
+            "fraction of its bound (the multiplier field does not depend on the node count)",
+            ParamRange(0.0, 0.9),
+            "support_tol",
+        ),
+        EstimatorParam(
+            "peak_radius_m",
+            3e-3,
+            "contact rule: k_peak compares pressures averaged over a disc of this radius (a "
+            "physical length, so the rule does not depend on the node count)",
+            ParamRange(0.0, 0.02, "m"),
+            "peak_radius_m",
+        ),
+        EstimatorParam(
             "ambient_pa",
             SIM.ambient_pa,
             "ambient pressure, subtracted from absolute pressure readings; it sets the rest "
