@@ -86,10 +86,15 @@ def test_estimate_writes_every_good_frame_and_names_the_bad_one(
     assert res["skipped_counts"] == {KINDS[variant]: 1}
     assert "1 skipped" in capsys.readouterr().err
     for f in res["frames"]:  # the good frames read as in the undamaged bag: the same before
-        # the bad one, within 5 % after it (the flow tracks from the frame before the gap)
+        # the bad one, within 5 % after it (the flow tracks from the frame before the gap).
+        # "The same" is to 1e-6 relative: the 32FC1 variants hold the 16UC1 bag's millimetres
+        # rounded to float32 metres, and a support of a few dozen nodes carries that rounding
+        # into the force (measured: 3.8e-7 of 12 N).
         got, want = np.asarray(f["net_force_mesh"]), np.asarray(good_forces[f["index"]])
-        tol = 1e-6 if f["index"] < BAD or variant in READING else 0.05 * np.linalg.norm(want)
-        assert np.linalg.norm(got - want) <= tol + 1e-6
+        size = max(1.0, float(np.linalg.norm(want)))
+        same = f["index"] < BAD or variant in READING
+        tol = 1e-6 * size if same else 0.05 * np.linalg.norm(want) + 1e-6
+        assert np.linalg.norm(got - want) <= tol
 
 
 def replay(bag: Path, loop: bool = False) -> Any:
