@@ -40,19 +40,21 @@ from bubble_rt.mesh import Mesh  # noqa: E402
 from scipy.ndimage import map_coordinates  # noqa: E402
 from synth_rgbd import dome_depth, smooth_flow, texture, warp  # noqa: E402
 
-# (method, scale, DIS finest-scale override or None)
-CONFIGS: list[tuple[str, float, int | None]] = [
-    ("dis_ultrafast", 1.0, None),
-    ("dis_fast", 1.0, None),
-    ("dis_medium", 1.0, None),
-    ("dis_medium", 0.75, None),
-    ("dis_medium", 0.5, None),
-    ("dis_ultrafast", 1.0, 1),
-    ("dis_fast", 1.0, 1),
-    ("dis_fast", 0.5, 0),
-    ("farneback", 1.0, None),
-    ("farneback", 0.5, None),
-    ("farneback_heavy", 1.0, None),
+# (method, scale, DIS finest-scale override or None, DIS patch-stride override or None)
+CONFIGS: list[tuple[str, float, int | None, int | None]] = [
+    ("dis_ultrafast", 1.0, None, None),
+    ("dis_fast", 1.0, None, None),
+    ("dis_medium", 1.0, None, None),
+    ("dis_medium", 0.75, None, None),
+    ("dis_medium", 0.5, None, None),
+    ("dis_ultrafast", 1.0, 1, 4),
+    ("dis_ultrafast", 1.0, 1, 5),
+    ("dis_ultrafast", 1.0, 1, 6),
+    ("dis_fast", 1.0, 1, None),
+    ("dis_fast", 0.5, 0, None),
+    ("farneback", 1.0, None, None),
+    ("farneback", 0.5, None, None),
+    ("farneback_heavy", 1.0, None, None),
 ]
 
 
@@ -77,8 +79,10 @@ def main(argv: list[str] | None = None) -> int:
         fill_ms.append((time.perf_counter() - t0) * 1e3)
 
     trackers = []
-    for method, scale, finest in CONFIGS:
-        settings = FlowSettings(method=method, scale=scale, dis_finest_scale=finest)
+    for method, scale, finest, stride in CONFIGS:
+        settings = FlowSettings(
+            method=method, scale=scale, dis_finest_scale=finest, dis_patch_stride=stride
+        )
         tr = DeformationTracker(mesh, cam, ref, settings)
         tr.track(cur)  # warm-up
         trackers.append(tr)
@@ -88,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     last = [tr.track(cur) for tr in trackers]
     # Round robin over the settings, so that load from elsewhere hits them all alike.
     for rep in range(args.repeats):
-        for k, ((method, _, _), tr) in enumerate(zip(CONFIGS, trackers, strict=True)):
+        for k, ((method, _, _, _), tr) in enumerate(zip(CONFIGS, trackers, strict=True)):
             if method == "farneback_heavy" and rep % 5:
                 continue  # ~0.2 s per call: a fifth of the repeats is enough
             c0 = time.process_time()
@@ -100,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
             samples[k]["lift"].append(d.timings_ms["lift"])
             last[k] = d
     rows = []
-    for (method, scale, finest), tr, d, sm in zip(CONFIGS, trackers, last, samples, strict=True):
+    for (method, scale, finest, stride), tr, d, sm in zip(
+        CONFIGS, trackers, last, samples, strict=True
+    ):
         truth = np.column_stack(
             [
                 map_coordinates(F[..., c], [tr.uv_ref[:, 1], tr.uv_ref[:, 0]], order=1)
@@ -113,7 +119,10 @@ def main(argv: list[str] | None = None) -> int:
                 method=method,
                 scale=scale,
                 dis_finest_scale=finest,
-                name=f"{method}@{scale:g}" + ("" if finest is None else f"/finest{finest}"),
+                dis_patch_stride=stride,
+                name=f"{method}@{scale:g}"
+                + ("" if finest is None else f"/finest{finest}")
+                + ("" if stride is None else f"/stride{stride}"),
                 roi=list(tr.roi),
                 flow_ms=float(np.median(sm["flow"])),
                 lift_ms=float(np.median(sm["lift"])),

@@ -42,6 +42,11 @@ OpticalFlow::OpticalFlow(const FlowParams& params) : params_(params) {
     if (params.dis_finest_scale >= 0) dis_->setFinestScale(params.dis_finest_scale);
     if (params.dis_refinement_iterations >= 0)
       dis_->setVariationalRefinementIterations(params.dis_refinement_iterations);
+    if (params.dis_patch_stride >= 0) {
+      require(params.dis_patch_stride >= 1 && params.dis_patch_stride <= dis_->getPatchSize(),
+              "DIS patch stride must be between 1 and the patch size");
+      dis_->setPatchStride(params.dis_patch_stride);
+    }
   } else {
     const FarnebackParams& f = params.farneback;
     require(f.pyr_scale > 0.0 && f.pyr_scale < 1.0, "Farneback pyr_scale must be in (0, 1)");

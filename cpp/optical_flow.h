@@ -30,6 +30,9 @@ struct FlowParams {
   // iterations.
   int dis_finest_scale = -1;
   int dis_refinement_iterations = -1;
+  // Pixels between the centres of neighbouring patches (-1 keeps the preset's 4): the patch
+  // search's cost falls with its square.
+  int dis_patch_stride = -1;
   FarnebackParams farneback;
   // Images are resized by this factor (0 < scale <= 1) before the flow; flow is returned in
   // full-resolution pixels.

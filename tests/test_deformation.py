@@ -59,6 +59,24 @@ def test_flow_at_nodes_dis_medium_within_0_3_px(scene):
     assert err.max() < 0.3
 
 
+def test_default_dis_patch_stride_keeps_the_preset_strides_flow_error(scene):
+    """The default stride (5, FlowSettings.dis_patch_stride) is the flow's cost cut: it must
+    read the synthetic warp as well as the preset's stride 4 (measured: rms 0.066 / 0.068 px),
+    and the setting must reach OpenCV (a stride of 8 gives another flow)."""
+    cam, depth, img, ref, mesh = scene
+    F = smooth_flow(cam.height, cam.width, 3.0)
+    cur = Frame(warp(img, F), depth, 100000.0)
+    rms, flows = {}, {}
+    for stride in (None, 5, 8):
+        tr = DeformationTracker(mesh, cam, ref, FlowSettings(dis_patch_stride=stride))
+        flows[stride] = tr.track(cur).flow
+        err = np.linalg.norm(flows[stride] - true_flow_at(F, tr.uv_ref), axis=1)
+        rms[stride] = float(np.sqrt(np.mean(err**2)))
+    assert FlowSettings().dis_patch_stride == 5
+    assert rms[5] < 0.1 and rms[5] <= 1.2 * rms[None], rms
+    assert not np.array_equal(flows[8], flows[None])
+
+
 def test_flow_downscaled_still_close(scene):
     cam, depth, img, ref, mesh = scene
     F = smooth_flow(cam.height, cam.width, 3.0)
@@ -413,6 +431,9 @@ def test_core_input_errors_are_value_errors():
         _core._OpticalFlow(method=1, dis_preset=7, **kw)
     with pytest.raises(ValueError, match="poly_n"):
         _core._OpticalFlow(method=0, dis_preset=0, **{**kw, "poly_n": 6})
+    for stride in (0, 9):  # 8 px patches
+        with pytest.raises(ValueError, match="patch stride"):
+            _core._OpticalFlow(method=1, dis_preset=0, dis_patch_stride=stride, **kw)
     of = _core._OpticalFlow(method=1, dis_preset=0, **kw)
     with pytest.raises(ValueError, match="no reference"):
         of.compute(np.zeros((20, 20, 3), np.uint8))

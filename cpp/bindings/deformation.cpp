@@ -60,7 +60,8 @@ void bind_deformation(py::module_& m) {
   py::class_<bubble::OpticalFlow>(m, "_OpticalFlow")
       .def(py::init([](int method, int dis_preset, double pyr_scale, int levels, int winsize,
                        int iterations, int poly_n, double poly_sigma, bool gaussian, double scale,
-                       bool forward_backward, int dis_finest_scale, int dis_refinement_iterations) {
+                       bool forward_backward, int dis_finest_scale, int dis_refinement_iterations,
+                       int dis_patch_stride) {
              bubble::FlowParams p;
              bubble::require(method == 0 || method == 1, "method must be 0 (Farneback) or 1 (DIS)");
              p.method = static_cast<bubble::FlowMethod>(method);
@@ -70,12 +71,14 @@ void bind_deformation(py::module_& m) {
              p.forward_backward = forward_backward;
              p.dis_finest_scale = dis_finest_scale;
              p.dis_refinement_iterations = dis_refinement_iterations;
+             p.dis_patch_stride = dis_patch_stride;
              return new bubble::OpticalFlow(p);
            }),
            py::arg("method"), py::arg("dis_preset"), py::arg("pyr_scale"), py::arg("levels"),
            py::arg("winsize"), py::arg("iterations"), py::arg("poly_n"), py::arg("poly_sigma"),
            py::arg("gaussian"), py::arg("scale"), py::arg("forward_backward"),
-           py::arg("dis_finest_scale") = -1, py::arg("dis_refinement_iterations") = -1)
+           py::arg("dis_finest_scale") = -1, py::arg("dis_refinement_iterations") = -1,
+           py::arg("dis_patch_stride") = -1)
       .def(
           "set_reference",
           [](bubble::OpticalFlow& self, const U8Image& rgb, int x, int y, int w, int h) {
