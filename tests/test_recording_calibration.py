@@ -55,6 +55,9 @@ FITTED_REL_TOL = 0.15
 #: k_u -24 %, where the truth's own loss is 0.16 % above its optimum): the loss check below is
 #: what guards them, the recovered values fitting the truth within 1 % of its optimum ...
 FLAT_FACTOR = 2.0
+#: The recovered loss within 0.1 % of the loss at the truth's parameters (a loss that did not
+#: move from its start would be 23 % above).
+MINIMISED_REL = 1e-3
 #: ... and the rotation within 10 degrees of the true one (measured 7.2 degrees; the rest is
 #: the estimator's own direction error: the rotation taking the true net forces onto the
 #: estimated ones at the truth-calibrated parameters is itself several degrees).
@@ -250,8 +253,12 @@ def test_calibration_on_punyo_recordings_recovers_truth_parameters_and_rotation(
     # Where they differ, the recovered parameters fit the truth itself no worse (1 %).
     assert _Sum(sim.problems).loss(out.result.params) <= 1.01 * truth_loss
     assert angle < ROTATION_TOL_DEG
-    # The loss at the recovered parameters is no worse than at the truth's (it is minimised).
-    assert out.result.loss <= rc.RecordingProblem(sets).loss(sim.truth.params) + 1e-9
+    # The loss at the recovered parameters is no worse than at the truth's (it is minimised), to
+    # MINIMISED_REL: k_f picks the support, so the loss is piecewise in it and Nelder-Mead ends
+    # on a step near the minimum (measured 0.04 % above the truth's, the same at 60, 80, 100
+    # and 120 evaluations and with a restarted simplex; the start is 23 % above).
+    at_truth = rc.RecordingProblem(sets).loss(sim.truth.params)
+    assert out.result.loss <= (1 + MINIMISED_REL) * at_truth
     # The fitted rotation is far better than knowing nothing (identity: 35 degrees off).
     assert angle < 0.5 * rc.rotation_angle_deg(np.eye(3), R_TRUE)
 
