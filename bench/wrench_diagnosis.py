@@ -12,7 +12,8 @@ frames whose true net force is at least 1 N (medians):
 - net force read along the truth's contact normal and along its shear direction (estimate /
   truth, frames whose true shear is at least 0.3 N), and the same of the unregularised model
   ``K U - dp a n`` on the true displacements at the estimator's nodes (``raw_true_u_*``: the
-  model's own read, without tracking or regularisation);
+  model's own read, without tracking or regularisation) and of its geometrically nonlinear
+  form (``raw_true_u_nl_*``: ``GreenMembrane``, the forces the estimator reports);
 - split frames with two true pins of at least 0.5 N: every interior node's force given to the
   nearest true pin, the worse pin's ``|F - F_gt| / |F_gt|`` and the part of it across F_gt.
 
@@ -72,12 +73,15 @@ def frame_terms(e: Any, truth: Any, mesh: Any, model: Any) -> dict[str, float]:
     U_true = truth.displace(V_all) - V_all
     U_true[~it] = 0.0
     Fr = model.external_forces(U_true, e.pressure_delta_pa)[it].sum(axis=0)
+    Fn = model.nonlinear.external_forces(U_true, e.pressure_delta_pa)[it].sum(axis=0)
     out["normal_read"] = float((Fe @ nc) / (Fg @ nc))
     out["raw_true_u_normal_read"] = float((Fr @ nc) / (Fg @ nc))
+    out["raw_true_u_nl_normal_read"] = float((Fn @ nc) / (Fg @ nc))
     if np.linalg.norm(shear_gt) >= 0.3:
         u = shear_gt / np.linalg.norm(shear_gt)
         out["shear_read"] = float((Fe @ u) / np.linalg.norm(shear_gt))
         out["raw_true_u_shear_read"] = float((Fr @ u) / np.linalg.norm(shear_gt))
+        out["raw_true_u_nl_shear_read"] = float((Fn @ u) / np.linalg.norm(shear_gt))
     pins = [p for p in truth.patches() if np.linalg.norm(p.force) >= 0.5]
     if len(pins) == 2:
         Xall = np.asarray(truth.sim_reference_vertices)

@@ -38,7 +38,8 @@ def test_default_config():
     # k_u, k_const, k_linear, nu and thickness are the paper's; E and k_f were chosen for the
     # inflated model + refit on the calibration seeds.
     assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.05, 537592.0, 2000.0, 2.0, 0.5)
-    assert c.material == Material(0.55e6, 0.5, 0.65e-3)
+    assert c.material == Material(0.8e6, 0.5, 0.65e-3)
+    assert c.nonlinear_iterations == 2
     assert (c.inflation_pa, c.ambient_pa) == (5000.0, 101325.0)
     assert c.solver == SolverSettings()
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -56,7 +57,8 @@ def test_estimate_outputs_are_consistent_with_the_model():
     assert e.contact.dtype == bool
     assert e.info.status == "solved"
     assert np.all(e.displacements[_mesh().boundary] == 0.0)
-    F = est.model.external_forces(e.displacements, dp)
+    # the forces of the membrane with its geometric nonlinearity (nonlinear_iterations > 0)
+    F = est.model.nonlinear.external_forces(e.displacements, dp)
     assert np.allclose(e.node_forces, F)
     assert np.allclose(e.contact_pressure, F / est.model.areas[:, None])
     assert np.allclose(e.normal_pressure, -(est.model.normals * e.contact_pressure).sum(axis=1))
@@ -150,6 +152,25 @@ def _inflated_field(est: ForceEstimator, forces: dict[int, np.ndarray], dp: floa
     return U.reshape(-1, 3)
 
 
+def _nonlinear_field(
+    est: ForceEstimator, forces: dict[int, np.ndarray], dp: float, steps: int = 30
+) -> np.ndarray:
+    """Displacements under which the estimator's nonlinear membrane (``GreenMembrane``) gives
+    ``forces`` on the named interior nodes and zero elsewhere (Newton on the linear K)."""
+    mesh = est.mesh
+    free = np.flatnonzero(mesh.interior)
+    fd = (3 * free[:, None] + np.arange(3)).ravel()
+    K = est.model.stiffness.tocsr()[fd][:, fd].toarray()
+    f = np.zeros((mesh.n_nodes, 3))
+    for i, v in forces.items():
+        f[i] = v
+    U = np.zeros((mesh.n_nodes, 3))
+    for _ in range(steps):
+        r = (f - est.model.nonlinear.external_forces(U, dp)).ravel()[fd]
+        U.reshape(-1)[fd] += np.linalg.solve(K, r)
+    return U
+
+
 def _top_nodes(k: int) -> list[int]:
     mesh = _mesh()
     return [int(i) for i in np.argsort(-mesh.vertices[:, 2])[:k]]
@@ -173,8 +194,8 @@ def test_estimator_uses_the_reference_pressure_for_the_inflation():
 def test_refit_removes_the_lasso_shrinkage(force):
     # A force the model represents exactly: the group lasso alone takes a roughly fixed amount
     # off it, the refit on its support recovers it (the paper's estimate read 5-50 % of the
-    # truth on simulated touches).
-    est = ForceEstimator(_mesh())
+    # truth on simulated touches). The linear model's refit (nonlinear_iterations 0).
+    est = ForceEstimator(_mesh(), EstimatorConfig(nonlinear_iterations=0))
     nodes = _top_nodes(3)
     U = _inflated_field(est, {i: np.array([0.0, 0.0, -force / 3]) for i in nodes}, 0.0)
     e = est.estimate(U, 0.0)
@@ -189,6 +210,30 @@ def test_refit_removes_the_lasso_shrinkage(force):
     assert np.abs(e.node_forces[off][est.mesh.interior[off]]).max() < 1e-6 * force
     assert set(np.flatnonzero(e.contact)) <= set(nodes) and e.contact.any()
     assert "refit" in e.timings_ms
+
+
+@pytest.mark.parametrize("force", [1.0, 2.5])
+def test_nonlinear_refit_recovers_the_nonlinear_membranes_force(force):
+    # A force the nonlinear membrane represents exactly: the linear model misreads it (more so
+    # the firmer the press); the refit with the nonlinear forces recovers it and keeps the
+    # nodes off the support force-free to the modified-Newton steps' accuracy.
+    est = ForceEstimator(_mesh())
+    nodes = _top_nodes(3)
+    true = {i: np.array([0.3, 0.0, -1.0]) * force / 3 for i in nodes}
+    U = _nonlinear_field(est, true, 50.0)
+    e = est.estimate(U, 50.0)
+    lin = ForceEstimator(_mesh(), EstimatorConfig(nonlinear_iterations=0)).estimate(U, 50.0)
+    target = np.array([0.3, 0.0, -1.0]) * force
+    err = float(np.linalg.norm(e.net_force - target))
+    assert err < 0.01 * force
+    assert err < 0.5 * float(np.linalg.norm(lin.net_force - target))
+    off = est.mesh.interior & ~e.support
+    resid = float(np.abs(e.node_forces[off]).max())
+    assert resid < 0.01 * force
+    # more modified-Newton steps drive the off-support forces to zero
+    more = ForceEstimator(_mesh(), EstimatorConfig(nonlinear_iterations=6)).estimate(U, 50.0)
+    assert np.array_equal(more.support, e.support)
+    assert float(np.abs(more.node_forces[off]).max()) < 0.1 * resid
 
 
 # A light touch holds a few nodes (the dense support form); a firm press most of the membrane
@@ -269,7 +314,11 @@ def test_first_light_touch_frame_is_detected():
     mesh = ev.estimator_mesh("medium", traj)
     ref = Reference.capture(traj.reference_frames)
     tracker = DeformationTracker(mesh, traj.camera, ref, FlowSettings())
-    cfgs = {"default": EstimatorConfig(), "exact support": EstimatorConfig(support_tol=1e-3)}
+    # At the linear model's E (0.55 MPa), where the rule was made. The default since issue 20
+    # (E 0.8 MPa) keeps no support on this 0.12 N frame and catches the next one (0.32 N):
+    # light-touch detection 1.00 -> 0.97 on the calibration seed (docs/evaluation.md).
+    soft = EstimatorConfig(material=Material(0.55e6, 0.5, 0.65e-3))
+    cfgs = {"default": soft, "exact support": dataclasses.replace(soft, support_tol=1e-3)}
     ests = {k: ForceEstimator(mesh, c, ref) for k, c in cfgs.items()}
     first = 11
     for fr in traj.frames[: first + 1]:

@@ -406,6 +406,26 @@ def test_config_overrides_come_through_the_daemon_loader(tmp_path):
     assert load_config_overrides(cfg) == {"k_f": 0.25, "E": 2e6}
 
 
+def test_every_estimator_key_of_a_config_reaches_the_evaluated_estimator(tmp_path):
+    # eval and bench used to keep six named keys and drop the others (support_tol,
+    # nonlinear_iterations, ...) without a word.
+    from bubble_rt.estimation.estimator import CONFIG_KEYS, EstimatorConfig
+    from bubble_rt.eval import load_config_overrides
+    from bubble_rt.eval.tasks import estimator_config
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        "[estimator]\nsupport_tol = 0.3\nnonlinear_iterations = 0\nthickness = 1e-3\n"
+        "peak_radius_m = 0.004\n"
+    )
+    got = estimator_config(load_config_overrides(cfg))
+    default = EstimatorConfig()
+    assert (got.support_tol, got.nonlinear_iterations) == (0.3, 0)
+    assert (got.material.thickness, got.peak_radius_m) == (1e-3, 0.004)
+    assert got.material.E == default.material.E and got.k_f == default.k_f
+    assert {"support_tol", "nonlinear_iterations", "thickness"} <= set(CONFIG_KEYS)
+
+
 def _patch(centroid_mm, force, pressure_centroid_mm=None):
     from types import SimpleNamespace
 

@@ -322,3 +322,29 @@ def test_inflated_model_keeps_rigid_translations_force_free_and_zero_pressure_is
     assert abs(inflated.stiffness - plain.stiffness).max() > 10.0
     with pytest.raises(ValueError, match="inflation_pa"):
         MembraneModel(mesh, inflation_pa=-1.0)
+
+
+def test_green_membrane_linearises_to_the_inflated_model_and_ignores_translations():
+    # GreenMembrane (the forces the estimator reports) is the inflated model with its geometric
+    # nonlinearity kept: K U to first order, exact for rigid translations, a second-order
+    # remainder otherwise.
+    m = MembraneModel(Mesh.preset("coarse"), Material(E=0.8e6), inflation_pa=5000.0)
+    nl = m.nonlinear
+    rng = np.random.default_rng(7)
+    U = rng.normal(size=(m.n_nodes, 3))
+    U[m.mesh.boundary] = 0.0
+    for scale in (1e-7, 1e-6):
+        lin, non = m.external_forces(scale * U, 0.0), nl.external_forces(scale * U, 0.0)
+        # the remainder is quadratic: a tenth of the displacement, a hundredth of the error
+        rel = np.abs(non - lin).max() / np.abs(lin).max()
+        assert rel < 1e-3 * scale / 1e-7
+    small = np.abs(nl.external_forces(1e-7 * U, 0.0) - m.external_forces(1e-7 * U, 0.0)).max()
+    large = np.abs(nl.external_forces(1e-6 * U, 0.0) - m.external_forces(1e-6 * U, 0.0)).max()
+    assert large == pytest.approx(100 * small, rel=0.05)
+    shift = np.tile([1e-3, -2e-3, 3e-3], (m.n_nodes, 1))
+    assert np.abs(nl.external_forces(shift, 0.0)).max() < 1e-10
+    # a pressure change alone pushes every node by dp times its consistent area vector
+    F = nl.external_forces(np.zeros((m.n_nodes, 3)), 100.0)
+    interior = m.mesh.interior
+    expected = -100.0 * m.area_normals[interior].sum(axis=0)
+    assert np.linalg.norm(F[interior].sum(axis=0) - expected) < 0.02 * np.linalg.norm(expected)

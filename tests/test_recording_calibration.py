@@ -447,13 +447,16 @@ def _calibrate_stiff(problem: rc.RecordingProblem, what: str) -> tuple[float, fl
 
 def test_a_membrane_twice_as_stiff_is_read_at_its_force_scale(stiff):
     """Recordings of a membrane twice as stiff as the simulator's default (its pressure read
-    right): the estimator reads a stiffer membrane's force from its deformation (a stiffer
-    membrane dents wider), so the defaults read it within 10 %, and `calibrate --recording`'s
-    default fit (E, k_f, k_u, the ambient pressure and the F/T rotation) keeps it there."""
+    right): the estimator reads a stiffer membrane's force partly from its deformation (a
+    stiffer membrane dents wider), so the defaults read it low but within 20 % (measured 0.87
+    with the nonlinear membrane; the linear one, whose E governed less, read 0.91), and
+    `calibrate --recording`'s default fit (E, k_f, k_u, the ambient pressure and the F/T
+    rotation) brings it within 10 % by raising E (measured 0.8 -> 2.0 MPa, ratio 1.00)."""
     assert stiff.gains.min() >= STIFF_FORCE_GAIN, stiff.gains
-    r0, r1, _ = _calibrate_stiff(_stiff_problem(stiff), f"membrane x{STIFF_FACTOR:g}")
-    assert abs(r0 - 1.0) < STIFF_RATIO_TOL
+    r0, r1, fitted = _calibrate_stiff(_stiff_problem(stiff), f"membrane x{STIFF_FACTOR:g}")
+    assert abs(r0 - 1.0) < 2 * STIFF_RATIO_TOL
     assert abs(r1 - 1.0) < STIFF_RATIO_TOL
+    assert fitted["E"] > 1.5 * cal.DEFAULTS["E"]
 
 
 def test_calibration_recovers_the_scale_of_a_bubble_twice_as_stiff_as_the_defaults(stiff):

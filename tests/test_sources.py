@@ -295,7 +295,9 @@ def test_iterable_camera_keeps_its_period_where_the_loop_starts_over():
     assert cam.output.dropped == 0
     gaps = np.diff([f.t for f in got])
     assert [f.meta["source_index"] for f in got[:7]] == [0, 1, 2, 0, 1, 2, 0]
-    assert gaps.min() > 0.6 / 40.0, gaps
+    # Frames keep a fixed schedule, so one late on a loaded machine is followed by a shorter
+    # gap (measured 35 then 15 ms under a parallel test run); "at once" was microseconds.
+    assert gaps.min() > 0.2 / 40.0, gaps
 
 
 def test_iterable_camera_lossless_delivers_every_frame():

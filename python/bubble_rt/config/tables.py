@@ -214,6 +214,7 @@ class EstimatorSection:
     k_linear: float = _estimator_option("k_linear")
     support_tol: float = _estimator_option("support_tol")
     peak_radius_m: float = _estimator_option("peak_radius_m")
+    nonlinear_iterations: int = _estimator_option("nonlinear_iterations")
     profile: str = option(
         "auto",
         "sensor profile giving the physical constants (bubble_rt.sensor): auto = punyo for "

@@ -153,6 +153,74 @@ def inflation_stiffness(mesh: Mesh, gauge_pressure_pa: float) -> tuple[sp.csr_ma
     return coordinatewise_stiffness(T, lap, n) + load, tension
 
 
+class GreenMembrane:
+    """The inflated membrane of :class:`MembraneModel` with its geometric nonlinearity kept:
+    the same constants (E, nu, thickness, rest tension T0, rest gauge pressure p0), the
+    Green-Lagrange strain instead of the linear one, and the pressure acting on the displaced
+    surface (docs/method.md, "Geometric nonlinearity (the refit's forces)").
+
+    Per triangle (reference area A, in-plane gradients g_a of the linear shape functions, the
+    deformation gradient F = sum_a x_a g_a^T, 3 x 2), the second Piola-Kirchhoff tension is
+    ``S = T0 I + C : E`` with ``E = (F^T F - I) / 2`` and C the plane-stress law of
+    :class:`Material` times the thickness; node a's internal force is ``A F S g_a``. A pressure
+    p on a triangle puts ``p (x1 - x0) x (x2 - x0) / 6`` on each corner. The force the object
+    applies on the nodes is
+
+        F_ext(U, dp) = [f_int(X + U) - f_int(X)] - [f_p(X + U, p0 + dp) - f_p(X, p0)],
+
+    whose linearisation about U = 0 is MembraneModel's ``K U - dp a n`` (material, geometric
+    and load stiffness; the pressure change on the consistent rather than the lumped nodal
+    normals). About 0.3 ms per call at 390 nodes (NumPy).
+    """
+
+    def __init__(self, mesh: Mesh, material: Material, inflation_pa: float, tension: float) -> None:
+        V = np.asarray(mesh.vertices, dtype=np.float64)
+        T = np.asarray(mesh.triangles)
+        self._V, self._T = V, T
+        self.p0 = float(inflation_pa)
+        self.tension = float(tension)
+        area, _, G = _triangle_gradients(V, T)
+        self._AG = area[:, None, None] * G  # T x 2 x 3
+        self._G = G
+        nu = float(material.nu)
+        self._nu = nu
+        self._c = float(material.E) * float(material.thickness) / (1.0 - nu * nu)
+        nt = len(T)
+        # corner (t, a) -> node T[t, a]: sums per-corner forces (3 nt x 3) into nodes
+        self._gather = sp.csr_matrix(
+            (np.ones(3 * nt), (T.reshape(-1), np.arange(3 * nt))), shape=(len(V), 3 * nt)
+        )
+        self._f0 = self._internal(V) - self._pressure(V, self.p0)
+
+    def _internal(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        P = x[self._T]  # T x 3 corners x 3
+        G = self._G
+        f1 = (P * G[:, 0, :, None]).sum(axis=1)  # dx/dxi_1 (T x 3)
+        f2 = (P * G[:, 1, :, None]).sum(axis=1)
+        e11 = 0.5 * ((f1 * f1).sum(axis=1) - 1.0)
+        e22 = 0.5 * ((f2 * f2).sum(axis=1) - 1.0)
+        e12 = 0.5 * (f1 * f2).sum(axis=1)
+        c, nu = self._c, self._nu
+        s11 = self.tension + c * (e11 + nu * e22)
+        s22 = self.tension + c * (e22 + nu * e11)
+        s12 = c * (1.0 - nu) * e12
+        t1 = s11[:, None] * f1 + s12[:, None] * f2  # F S, column 1 (T x 3)
+        t2 = s12[:, None] * f1 + s22[:, None] * f2
+        AG = self._AG
+        fa = t1[:, None, :] * AG[:, 0, :, None] + t2[:, None, :] * AG[:, 1, :, None]
+        return np.asarray(self._gather @ fa.reshape(-1, 3))
+
+    def _pressure(self, x: NDArray[np.float64], p: float) -> NDArray[np.float64]:
+        T = self._T
+        c = np.cross(x[T[:, 1]] - x[T[:, 0]], x[T[:, 2]] - x[T[:, 0]]) * (p / 6.0)
+        return np.asarray(self._gather @ np.repeat(c, 3, axis=0))
+
+    def external_forces(self, U: ArrayLike, dp: float) -> NDArray[np.float64]:
+        """F_ext(U, dp) (N x 3, N) for displacements U (N x 3, m) and pressure change dp (Pa)."""
+        x = self._V + np.asarray(U, dtype=np.float64)
+        return self._internal(x) - self._pressure(x, self.p0 + float(dp)) - self._f0
+
+
 class MembraneModel:
     """Constant-strain-triangle membrane of a mesh, built once per mesh and material.
 
@@ -195,6 +263,11 @@ class MembraneModel:
     @property
     def n_nodes(self) -> int:
         return int(self.areas.shape[0])
+
+    @cached_property
+    def nonlinear(self) -> GreenMembrane:
+        """The same membrane with its geometric nonlinearity (:class:`GreenMembrane`)."""
+        return GreenMembrane(self.mesh, self.material, self.inflation_pa, self.tension)
 
     @cached_property
     def stiffness(self) -> sp.csr_matrix:

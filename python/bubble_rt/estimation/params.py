@@ -118,6 +118,14 @@ ESTIMATOR_PARAMS: dict[str, EstimatorParam] = {
             "peak_radius_m",
         ),
         EstimatorParam(
+            "nonlinear_iterations",
+            2,
+            "reported forces: modified-Newton steps of the membrane with its geometric "
+            "nonlinearity (0: the linear model's forces; about 1 ms each at 390 nodes)",
+            ParamRange(0, 10, integer=True),
+            "nonlinear_iterations",
+        ),
+        EstimatorParam(
             "ambient_pa",
             SIM.ambient_pa,
             "ambient pressure, subtracted from absolute pressure readings; it sets the rest "

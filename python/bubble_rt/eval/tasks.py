@@ -74,50 +74,37 @@ _E_KEY = "youngs_modulus"
 
 
 def estimator_config(overrides: Sequence[tuple[str, float]] | dict[str, float]) -> Any:
-    """An EstimatorConfig with k_f, k_u, k_const, k_linear, ambient_pa and material E overridden
-    (other names are ignored)."""
+    """An EstimatorConfig with ``[estimator]`` parameters overridden (``E`` names
+    ``youngs_modulus``, as calibration does; other names are ignored)."""
     from dataclasses import replace
 
-    from bubble_rt.estimation.estimator import EstimatorConfig, config_changes
+    from bubble_rt.estimation.estimator import CONFIG_KEYS, EstimatorConfig, config_changes
 
     cfg = EstimatorConfig()
-    ov = dict(overrides)
-    keys = {
-        "E": _E_KEY,
-        "k_f": "k_f",
-        "k_u": "k_u",
-        "k_const": "k_const",
-        "k_linear": "k_linear",
-        "ambient_pa": "ambient_pa",
-    }
-    values = {keys[k]: float(v) for k, v in ov.items() if k in keys}
+    named = {(_E_KEY if k == "E" else k): v for k, v in dict(overrides).items()}
+    values = {k: v for k, v in named.items() if k in CONFIG_KEYS}
     return replace(cfg, **config_changes(cfg, values)) if values else cfg
 
 
 def load_config_overrides(path: str | Path | None) -> dict[str, float]:
     """The estimator parameters a configuration file sets (the daemon's TOML or `bubble-rt
-    calibrate`'s output), named as evaluation names them (E, k_f, k_u, k_const, k_linear);
-    {} when no path is given. The file goes through the one configuration loader
-    (``DaemonConfig.load``), so an unknown key or an out-of-range value raises ``ConfigError``
-    naming it."""
+    calibrate`'s output), named as evaluation names them (its [estimator] keys, E for
+    youngs_modulus); {} when no path is given. The file goes through the one configuration
+    loader (``DaemonConfig.load``), so an unknown key or an out-of-range value raises
+    ``ConfigError`` naming it."""
     if not path:
         return {}
     import tomllib
 
     from bubble_rt.config import DaemonConfig
+    from bubble_rt.estimation.estimator import CONFIG_KEYS
 
     cfg = DaemonConfig.load(path)
     present = tomllib.loads(Path(path).read_text()).get("estimator", {})
-    names = {
-        _E_KEY: "E",
-        "k_f": "k_f",
-        "k_u": "k_u",
-        "k_const": "k_const",
-        "k_linear": "k_linear",
-        "ambient_pa": "ambient_pa",
-    }
     return {
-        name: float(getattr(cfg.estimator, key)) for key, name in names.items() if key in present
+        ("E" if key == _E_KEY else key): getattr(cfg.estimator, key)
+        for key in CONFIG_KEYS
+        if key in present
     }
 
 
