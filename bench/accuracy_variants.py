@@ -169,7 +169,12 @@ VARIANTS: list[tuple[str, dict[str, Any]]] = [
         {"K": "inflated", "raw": True, "E": 0.66e6},
     ),
     (
-        f"default: F with E {EstimatorConfig().material.E / 1e6:.2f} MPa, k_f "
+        "J the default's linear refit (nonlinear_iterations 0), E 0.55 MPa: the default "
+        "until issue 20",
+        {"product": {"nonlinear_iterations": 0, "material": Material(0.55e6, 0.5, 0.65e-3)}},
+    ),
+    (
+        f"default: F with E {EstimatorConfig().material.E / 1e6:.2f} MPa and the nonlinear refit, k_f "
         f"{EstimatorConfig().k_f} (ForceEstimator, C++)",
         {"product": True},
     ),
@@ -187,8 +192,11 @@ def run(data: list[dict[str, Any]], v: dict[str, Any]) -> list[ev.FrameMetrics]:
         kf = v.get("k_f", PAPER_KF)
         ku = KU * (len(mesh.boundary) ** 2 / mesh.n_nodes if v.get("code_weights") else 1.0)
         if v.get("product"):
+            changes = v["product"] if isinstance(v["product"], dict) else {}
             prod = ForceEstimator(
-                mesh, EstimatorConfig(), SimpleNamespace(pressure_pa=tr["ref"].pressure_pa)
+                mesh,
+                EstimatorConfig(**changes),
+                SimpleNamespace(pressure_pa=tr["ref"].pressure_pa),
             )
         else:
             model = model_for(mesh, v.get("E", PAPER_E), p0, v.get("K", "material"))

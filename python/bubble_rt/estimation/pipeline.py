@@ -59,7 +59,7 @@ def capture_settings(config: Any, *, realtime: bool, layout: str = "sim") -> dic
     ec, fc = config.estimator, config.flow
     limit = config.solver.time_limit_ms / 1e3 if realtime else 0.0
     est = EstimatorConfig(solver=SolverSettings(time_limit=limit))
-    values = {key: float(getattr(ec, key)) for key in CONFIG_KEYS}
+    values = {key: getattr(ec, key) for key in CONFIG_KEYS}
     profile = ec.sensor_profile(layout)
     if not values["ambient_pa"]:
         values["ambient_pa"] = profile.ambient_pa
