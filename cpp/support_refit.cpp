@@ -116,6 +116,23 @@ Eigen::VectorXd SupportRefit::raw_forces(const RowMatrixX3d& U0, double dp) cons
   return fraw;
 }
 
+RowMatrixX3d SupportRefit::linear_forces(const RowMatrixX3d& W, double dp) const {
+  RowMatrixX3d F(n_, 3);
+  Eigen::Map<Eigen::VectorXd>(F.data(), 3 * n_).noalias() =
+      K_ * Eigen::Map<const Eigen::VectorXd>(W.data(), 3 * n_);
+  F -= dp * an_;
+  return F;
+}
+
+RowMatrixX3d SupportRefit::solve_free(const RowMatrixX3d& q) const {
+  Eigen::VectorXd qf(3 * nf_);
+  for (int j = 0; j < nf_; ++j) qf.segment<3>(3 * j) = q.row(free_(j)).transpose();
+  const Eigen::VectorXd x = lu_.solve(qf);
+  RowMatrixX3d X = RowMatrixX3d::Zero(n_, 3);
+  for (int j = 0; j < nf_; ++j) X.row(free_(j)) = x.segment<3>(3 * j).transpose();
+  return X;
+}
+
 // f_S from the dense H_SS f_S = (H F_raw)_S, then x = K_ff^{-1} (f - F_raw).
 Eigen::VectorXd SupportRefit::support_form(const std::vector<int>& sd,
                                            const Eigen::VectorXd& fraw) const {

@@ -41,7 +41,14 @@ class SupportRefit {
   RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
                      const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const;
 
+  // The linear model's forces K W - dp a n (N x 3, N) for displacements W (N x 3, m).
+  RowMatrixX3d linear_forces(const RowMatrixX3d& W, double dp) const;
+  // K_ff^{-1} q on the free nodes (N x 3, m; rim rows 0) for nodal forces q (N x 3, N; the rim
+  // rows are ignored): the factored K_ff reused.
+  RowMatrixX3d solve_free(const RowMatrixX3d& q) const;
+
   int n_nodes() const { return n_; }
+  bool is_free(int node) const { return slot_(node) >= 0; }
   double setup_time_ms() const { return setup_ms_; }
 
  private:

@@ -330,3 +330,84 @@ def test_first_light_touch_frame_is_detected():
     assert not out["exact support"].contact.any()
     assert out["default"].contact.any()
     assert float(np.linalg.norm(out["default"].net_force)) == pytest.approx(truth, rel=0.35)
+
+
+def _numpy_nonlinear_refit(
+    est: ForceEstimator, U: np.ndarray, V: np.ndarray, dp: float, support: np.ndarray, steps: int
+) -> np.ndarray:
+    """The reference of the estimator's C++ nonlinear refit (cpp/nonlinear_refit.h): modified
+    Newton steps with the NumPy GreenMembrane, SciPy's LU of K_ff and the linear refit."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    m, boundary = est.model, est.mesh.boundary
+    free = np.flatnonzero(np.repeat(est.mesh.interior, 3))
+    lu = spla.splu(sp.csc_matrix(m.stiffness[free][:, free]))
+    x = V - U
+    for _ in range(steps):
+        W = U + x
+        W[boundary] = 0.0
+        q = m.nonlinear.external_forces(W, dp) - m.external_forces(W, dp)
+        U0 = U.copy()
+        U0.reshape(-1)[free] += lu.solve(q.reshape(-1)[free])
+        x = np.asarray(est._refit.refit(U0, dp, support)) - U0
+    W = U + x
+    W[boundary] = 0.0
+    return W
+
+
+@pytest.mark.parametrize("depth", [3e-3, 1.2e-2], ids=["light", "firm"])
+def test_nonlinear_refit_matches_the_numpy_reference(depth):
+    est = ForceEstimator(_mesh())
+    U, dp = _field(5, depth)
+    e = est.estimate(U, dp)
+    assert e.support.any()
+    V = np.asarray(est._refit.refit(np.ascontiguousarray(U), dp, e.support))
+    V[est.mesh.boundary] = 0.0
+    want = _numpy_nonlinear_refit(est, U, V, dp, e.support, est.config.nonlinear_iterations)
+    scale = np.abs(want).max()
+    assert np.abs(e.displacements - want).max() <= 1e-9 * scale
+    assert np.all(e.displacements[est.mesh.boundary] == 0.0)
+    F = est.model.nonlinear.external_forces(want, dp)
+    assert np.abs(e.node_forces - F).max() <= 1e-9 * np.abs(F).max()
+
+
+@pytest.mark.parametrize("n_support", [6, 0.8], ids=["few-nodes", "most-of-the-membrane"])
+@pytest.mark.parametrize("steps", [0, 1, 3])
+def test_nonlinear_refit_core_matches_the_numpy_loop(n_support, steps):
+    # Both forms of the linear refit (dense support, sparse constraints) inside the loop.
+    est = ForceEstimator(_mesh())
+    mesh = _mesh()
+    U = np.random.default_rng(4).normal(scale=1e-3, size=(mesh.n_nodes, 3))
+    k = n_support if isinstance(n_support, int) else int(n_support * mesh.interior.sum())
+    support = np.zeros(mesh.n_nodes, bool)
+    support[_top_nodes(k)] = True
+    V = np.asarray(est._refit.refit(U, 80.0, support))
+    V[mesh.boundary] = 0.0
+    got = np.asarray(est._nonlinear_refit.refit(U, V, 80.0, support, steps))
+    want = _numpy_nonlinear_refit(est, U, V, 80.0, support, steps)
+    assert np.abs(got - want).max() <= 1e-9 * np.abs(want).max()
+    assert np.all(got[mesh.boundary] == 0.0)
+
+
+def test_nonlinear_refit_core_rejects_bad_input():
+    est = ForceEstimator(_mesh())
+    n = _mesh().n_nodes
+    U, V, s = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n, bool)
+    refit = est._nonlinear_refit.refit
+    with pytest.raises(ValueError, match="U must be N x 3"):
+        refit(np.zeros((n - 1, 3)), V, 0.0, s, 2)
+    with pytest.raises(ValueError, match="V_linear must be N x 3"):
+        refit(U, np.zeros((n, 2)), 0.0, s, 2)
+    with pytest.raises(ValueError, match="support"):
+        refit(U, V, 0.0, np.zeros(n + 1, bool), 2)
+    bad = U.copy()
+    bad[5, 2] = np.nan
+    with pytest.raises(ValueError, match="U must be finite"):
+        refit(bad, V, 0.0, s, 2)
+    with pytest.raises(ValueError, match="V_linear must be finite"):
+        refit(U, bad, 0.0, s, 2)
+    with pytest.raises(ValueError, match="dp"):
+        refit(U, V, float("nan"), s, 2)
+    with pytest.raises(ValueError, match="iterations"):
+        refit(U, V, 0.0, s, -1)

@@ -348,3 +348,45 @@ def test_green_membrane_linearises_to_the_inflated_model_and_ignores_translation
     interior = m.mesh.interior
     expected = -100.0 * m.area_normals[interior].sum(axis=0)
     assert np.linalg.norm(F[interior].sum(axis=0) - expected) < 0.02 * np.linalg.norm(expected)
+
+
+@pytest.mark.parametrize(("name", "inflation"), [("coarse", 5000.0), ("medium", 3000.0)])
+def test_green_membrane_core_matches_the_numpy_reference(name, inflation):
+    # The estimator evaluates GreenMembrane's forces in C++ (nonlinear_core); the NumPy class is
+    # the reference definition: equal to round-off on random displacements, small and large.
+    m = MembraneModel(Mesh.preset(name), Material(E=0.8e6), inflation_pa=inflation)
+    ref, core = m.nonlinear, m.nonlinear_core
+    assert core.n_nodes == m.n_nodes
+    rng = np.random.default_rng(11)
+    for scale, dp in [(1e-6, 0.0), (3e-4, 150.0), (3e-3, -400.0)]:
+        U = rng.normal(scale=scale, size=(m.n_nodes, 3))
+        want = ref.external_forces(U, dp)
+        got = np.asarray(core.external_forces(U, dp))
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() <= 1e-10 * np.abs(want).max()
+
+
+def test_green_membrane_core_rejects_bad_input():
+    m = MembraneModel(Mesh.preset("coarse"), Material(E=0.8e6), inflation_pa=5000.0)
+    core = m.nonlinear_core
+    U = np.zeros((m.n_nodes, 3))
+    with pytest.raises(ValueError, match="N x 3"):
+        core.external_forces(np.zeros((m.n_nodes - 1, 3)), 0.0)
+    with pytest.raises(ValueError, match="N x 3"):
+        core.external_forces(np.zeros((m.n_nodes, 2)), 0.0)
+    bad = U.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        core.external_forces(bad, 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        core.external_forces(U, float("inf"))
+    from bubble_rt import _core
+
+    V = np.ascontiguousarray(m.mesh.vertices, dtype=np.float64)
+    T = np.ascontiguousarray(m.mesh.triangles, dtype=np.int32)
+    with pytest.raises(ValueError, match="triangles"):
+        _core._GreenMembrane(V, T[:, :2].copy(), 0.8e6, 0.5, 6.5e-4, 600.0, 5000.0)
+    with pytest.raises(ValueError, match="outside"):
+        _core._GreenMembrane(V, T + len(V), 0.8e6, 0.5, 6.5e-4, 600.0, 5000.0)
+    with pytest.raises(ValueError, match="tension"):
+        _core._GreenMembrane(V, T, 0.8e6, 0.5, 6.5e-4, float("nan"), 5000.0)

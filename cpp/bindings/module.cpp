@@ -6,6 +6,7 @@
 namespace py = pybind11;
 
 void bind_membrane(py::module_& m);
+void bind_green_membrane(py::module_& m);
 void bind_solver(py::module_& m);
 void bind_refit(py::module_& m);
 void bind_deformation(py::module_& m);
@@ -18,6 +19,7 @@ PYBIND11_MODULE(_core, m) {
   // _core.InputError, a ValueError.
   py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
   bind_membrane(m);
+  bind_green_membrane(m);
   bind_solver(m);
   bind_refit(m);
   bind_deformation(m);

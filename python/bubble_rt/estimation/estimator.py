@@ -201,8 +201,8 @@ class ForceEstimator:
         self._refit = _core._SupportRefit(
             self.model._core, np.ascontiguousarray(self.mesh.boundary, dtype=np.int32)
         )
-        self._free_dofs = np.flatnonzero(np.repeat(self._interior, 3))
-        self._kff_lu: Any = None  # K on the free dofs (sparse LU), factored on first use
+        # the refit with the nonlinear membrane's forces (cpp/nonlinear_refit.h)
+        self._nonlinear_refit = _core._NonlinearRefit(self._refit, self.model.nonlinear_core)
 
     def estimate(self, U: ArrayLike, dp: float) -> Estimate:
         """Estimate from displacements U (N x 3, m, mesh frame) and pressure change dp (Pa).
@@ -223,7 +223,21 @@ class ForceEstimator:
         V[self.mesh.boundary] = 0.0  # exact already; removes the -0.0 / round-off noise
         V_nl = None
         if self.config.nonlinear_iterations > 0 and support.any():
-            V_nl = self._nonlinear_refit(np.ascontiguousarray(U), V, float(dp), support)
+            # The refit with the nonlinear membrane's forces: the smallest correction x of U
+            # whose GreenMembrane forces vanish off the support, from the linear refit's
+            # V = U + x0 by modified Newton steps on the linear stiffness K. Each step is the
+            # linear refit of a shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its
+            # raw forces are then F_nl(U + x) - K x, so its constraint is the linearisation of
+            # F_nl about U + x and its correction is still measured from U (C++, GIL released).
+            V_nl = np.asarray(
+                self._nonlinear_refit.refit(
+                    np.ascontiguousarray(U),
+                    V,
+                    float(dp),
+                    support,
+                    int(self.config.nonlinear_iterations),
+                )
+            )
         t2 = time.perf_counter()
         est = self._post(V, V_nl, float(dp), res.info, support)
         est.timings_ms = {
@@ -248,34 +262,6 @@ class ForceEstimator:
             self._interior & (y >= (1.0 - self.config.support_tol) * self.config.k_f)
         )
 
-    def _nonlinear_refit(
-        self, U: NDArray[np.float64], V: NDArray[np.float64], dp: float, support: NDArray[np.bool_]
-    ) -> NDArray[np.float64]:
-        """The refit with the nonlinear membrane's forces: the smallest correction x of U whose
-        ``GreenMembrane`` forces vanish off the support, from the linear refit's V = U + x0 by
-        modified Newton steps on the linear stiffness K. Each step is the linear refit of a
-        shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its raw forces are then
-        F_nl(U + x) - K x, so its constraint is the linearisation of F_nl about U + x and its
-        correction is still measured from U."""
-        m = self.model
-        if self._kff_lu is None:
-            import scipy.sparse.linalg as spla
-
-            free = self._free_dofs
-            self._kff_lu = spla.splu(sp.csc_matrix(m.stiffness[free][:, free]))
-        free = self._free_dofs
-        x = V - U
-        for _ in range(self.config.nonlinear_iterations):
-            W = U + x
-            W[self.mesh.boundary] = 0.0
-            q = m.nonlinear.external_forces(W, dp) - m.external_forces(W, dp)
-            U0 = U.copy()
-            U0.reshape(-1)[free] += self._kff_lu.solve(q.reshape(-1)[free])
-            x = np.asarray(self._refit.refit(U0, dp, support)) - U0
-        W = U + x
-        W[self.mesh.boundary] = 0.0
-        return W
-
     def _post(
         self,
         V: NDArray[np.float64],
@@ -298,7 +284,7 @@ class ForceEstimator:
         p_rule = m.normal_pressure(F)
         if V_nl is not None:
             V = V_nl
-            F = m.nonlinear.external_forces(V, dp)
+            F = np.asarray(m.nonlinear_core.external_forces(V, dp))
         P = F / m.areas[:, None]
         p = m.normal_pressure(F)
         contact = m.contact_mask(p_rule, self.config.k_const, self.config.k_linear) & support

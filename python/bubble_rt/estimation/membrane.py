@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -170,7 +171,9 @@ class GreenMembrane:
 
     whose linearisation about U = 0 is MembraneModel's ``K U - dp a n`` (material, geometric
     and load stiffness; the pressure change on the consistent rather than the lumped nodal
-    normals). About 0.3 ms per call at 390 nodes (NumPy).
+    normals). This NumPy class is the model's reference definition; the estimator evaluates
+    the same forces in C++ (``cpp/green_membrane.h``, :attr:`MembraneModel.nonlinear_core`,
+    equal to round-off: tests/test_membrane.py).
     """
 
     def __init__(self, mesh: Mesh, material: Material, inflation_pa: float, tension: float) -> None:
@@ -268,6 +271,21 @@ class MembraneModel:
     def nonlinear(self) -> GreenMembrane:
         """The same membrane with its geometric nonlinearity (:class:`GreenMembrane`)."""
         return GreenMembrane(self.mesh, self.material, self.inflation_pa, self.tension)
+
+    @cached_property
+    def nonlinear_core(self) -> Any:
+        """The C++ twin of :attr:`nonlinear` (private ``_core._GreenMembrane``: the same
+        forces to round-off, ``external_forces(U, dp)`` on C-contiguous float64 N x 3 U)."""
+        m = self.material
+        return _core()._GreenMembrane(
+            np.ascontiguousarray(self.mesh.vertices, dtype=np.float64),
+            np.ascontiguousarray(self.mesh.triangles, dtype=np.int32),
+            float(m.E),
+            float(m.nu),
+            float(m.thickness),
+            float(self.tension),
+            float(self.inflation_pa),
+        )
 
     @cached_property
     def stiffness(self) -> sp.csr_matrix:

@@ -1,0 +1,46 @@
+#include "nonlinear_refit.h"
+
+#include <cmath>
+#include <string>
+
+#include "errors.h"
+
+namespace bubble {
+
+NonlinearRefit::NonlinearRefit(const SupportRefit& refit, const GreenMembrane& green)
+    : refit_(refit), green_(green) {
+  require(refit.n_nodes() == green.n_nodes(),
+          "the refit and the nonlinear membrane must have the same nodes");
+}
+
+RowMatrixX3d NonlinearRefit::refit(
+    const Eigen::Ref<const RowMatrixX3d>& U_in, const Eigen::Ref<const RowMatrixX3d>& V_linear,
+    double dp, const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
+    int iterations) const {
+  const int n = n_nodes();
+  require(U_in.rows() == n, "U must be N x 3 with N = " + std::to_string(n));
+  require(V_linear.rows() == n, "V_linear must be N x 3 with N = " + std::to_string(n));
+  require(support.size() == n, "support must have N = " + std::to_string(n) + " entries");
+  require(U_in.allFinite(), "U must be finite");
+  require(V_linear.allFinite(), "V_linear must be finite");
+  require(std::isfinite(dp), "dp must be finite");
+  require(iterations >= 0, "iterations must be >= 0");
+  const RowMatrixX3d U = U_in;
+  RowMatrixX3d x = V_linear - U;
+  for (int k = 0; k < iterations; ++k) {
+    const RowMatrixX3d W = clamped(U, x);
+    const RowMatrixX3d q = green_.external_forces(W, dp) - refit_.linear_forces(W, dp);
+    const RowMatrixX3d U0 = U + refit_.solve_free(q);
+    x = refit_.refit(U0, dp, support) - U0;
+  }
+  return clamped(U, x);
+}
+
+RowMatrixX3d NonlinearRefit::clamped(const RowMatrixX3d& U, const RowMatrixX3d& x) const {
+  RowMatrixX3d W = U + x;
+  for (int i = 0; i < W.rows(); ++i)
+    if (!refit_.is_free(i)) W.row(i).setZero();
+  return W;
+}
+
+}  // namespace bubble
