@@ -13,27 +13,26 @@ NonlinearRefit::NonlinearRefit(const SupportRefit& refit, const GreenMembrane& g
           "the refit and the nonlinear membrane must have the same nodes");
 }
 
-RowMatrixX3d NonlinearRefit::refit(
-    const Eigen::Ref<const RowMatrixX3d>& U_in, const Eigen::Ref<const RowMatrixX3d>& V_linear,
-    double dp, const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
-    int iterations) const {
+NonlinearRefit::Result NonlinearRefit::refit(
+    const Eigen::Ref<const RowMatrixX3d>& U_in, double dp,
+    const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support, int iterations) const {
   const int n = n_nodes();
   require(U_in.rows() == n, "U must be N x 3 with N = " + std::to_string(n));
-  require(V_linear.rows() == n, "V_linear must be N x 3 with N = " + std::to_string(n));
   require(support.size() == n, "support must have N = " + std::to_string(n) + " entries");
   require(U_in.allFinite(), "U must be finite");
-  require(V_linear.allFinite(), "V_linear must be finite");
   require(std::isfinite(dp), "dp must be finite");
   require(iterations >= 0, "iterations must be >= 0");
   const RowMatrixX3d U = U_in;
-  RowMatrixX3d x = V_linear - U;
+  const SupportRefit::Factored system(refit_, support);  // the support stays: factor once
+  const RowMatrixX3d V = refit_.refit(U, dp, system);    // rim rows exactly 0
+  RowMatrixX3d x = V - U;
   for (int k = 0; k < iterations; ++k) {
     const RowMatrixX3d W = clamped(U, x);
     const RowMatrixX3d q = green_.external_forces(W, dp) - refit_.linear_forces(W, dp);
     const RowMatrixX3d U0 = U + refit_.solve_free(q);
-    x = refit_.refit(U0, dp, support) - U0;
+    x = refit_.refit(U0, dp, system) - U0;
   }
-  return clamped(U, x);
+  return {V, clamped(U, x)};
 }
 
 RowMatrixX3d NonlinearRefit::clamped(const RowMatrixX3d& U, const RowMatrixX3d& x) const {

@@ -21,13 +21,16 @@ class NonlinearRefit {
   // (InputError otherwise).
   NonlinearRefit(const SupportRefit& refit, const GreenMembrane& green);
 
-  // W (N x 3, m, rim rows exactly 0) after `iterations` modified Newton steps from the linear
-  // refit's V_linear (N x 3), for displacements U (N x 3), pressure change dp (Pa) and the
-  // support (N bools). Throws InputError on a wrong shape, non-finite input or iterations < 0.
-  RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U,
-                     const Eigen::Ref<const RowMatrixX3d>& V_linear, double dp,
-                     const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
-                     int iterations) const;
+  // The linear refit's V and the nonlinear one's W (both N x 3, m, rim rows exactly 0): W after
+  // `iterations` modified Newton steps from V, for displacements U (N x 3), pressure change dp
+  // (Pa) and the support (N bools), the support's system factored once for all of them.
+  // Throws InputError on a wrong shape, non-finite input or iterations < 0.
+  struct Result {
+    RowMatrixX3d linear, nonlinear;
+  };
+  Result refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
+               const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
+               int iterations) const;
 
   int n_nodes() const { return refit_.n_nodes(); }
 

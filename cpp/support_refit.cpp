@@ -87,20 +87,19 @@ SupportRefit::SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMat
 RowMatrixX3d SupportRefit::refit(
     const Eigen::Ref<const RowMatrixX3d>& U, double dp,
     const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const {
-  require(U.rows() == n_, "U must be N x 3 with N = " + std::to_string(n_));
   require(support.size() == n_, "support must have N = " + std::to_string(n_) + " entries");
+  return refit(U, dp, Factored(*this, support));
+}
+
+RowMatrixX3d SupportRefit::refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
+                                 const Factored& system) const {
+  require(U.rows() == n_, "U must be N x 3 with N = " + std::to_string(n_));
   require(U.allFinite(), "U must be finite");
   require(std::isfinite(dp), "dp must be finite");
-
   RowMatrixX3d U0 = U;
   for (int i = 0; i < n_; ++i)
     if (slot_(i) < 0) U0.row(i).setZero();
-  const Eigen::VectorXd fraw = raw_forces(U0, dp);
-  std::vector<int> sd, cd;  // support and constrained dofs (free numbering)
-  for (int j = 0; j < nf_; ++j)
-    for (int d = 0; d < 3; ++d) (support(free_(j)) ? sd : cd).push_back(3 * j + d);
-  const Eigen::VectorXd x =
-      dense_is_cheaper(sd.size(), cd.size()) ? support_form(sd, fraw) : constraint_form(cd, fraw);
+  const Eigen::VectorXd x = system.solve(raw_forces(U0, dp));
   RowMatrixX3d V = U0;
   for (int j = 0; j < nf_; ++j)
     for (int d = 0; d < 3; ++d) V(free_(j), d) += x(3 * j + d);
@@ -133,46 +132,60 @@ RowMatrixX3d SupportRefit::solve_free(const RowMatrixX3d& q) const {
   return X;
 }
 
-// f_S from the dense H_SS f_S = (H F_raw)_S, then x = K_ff^{-1} (f - F_raw).
-Eigen::VectorXd SupportRefit::support_form(const std::vector<int>& sd,
-                                           const Eigen::VectorXd& fraw) const {
-  const int s = static_cast<int>(sd.size());
-  Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * nf_);
-  if (s > 0) {
+SupportRefit::Factored::Factored(
+    const SupportRefit& owner,
+    const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support)
+    : owner_(owner) {
+  require(support.size() == owner.n_,
+          "support must have N = " + std::to_string(owner.n_) + " entries");
+  for (int j = 0; j < owner.nf_; ++j)
+    for (int d = 0; d < 3; ++d) (support(owner.free_(j)) ? sd_ : cd_).push_back(3 * j + d);
+  dense_ = dense_is_cheaper(sd_.size(), cd_.size());
+  if (dense_) {
+    const int s = static_cast<int>(sd_.size());
     Eigen::MatrixXd Hss(s, s);
-    Eigen::VectorXd rhs(s);
-    for (int a = 0; a < s; ++a) {
-      rhs(a) = H_.col(sd[a]).dot(fraw);  // H symmetric: row sd[a] = column sd[a]
-      for (int b = 0; b < s; ++b) Hss(a, b) = H_(sd[a], sd[b]);
-    }
-    const Eigen::VectorXd fs = Hss.llt().solve(rhs);
-    for (int a = 0; a < s; ++a) f(sd[a]) = fs(a);
+    for (int a = 0; a < s; ++a)
+      for (int b = 0; b < s; ++b) Hss(a, b) = owner.H_(sd_[a], sd_[b]);
+    if (s > 0) hss_.compute(Hss);
+    return;
   }
-  return lu_.solve(Eigen::VectorXd(f - fraw));
-}
-
-// x = -K_C^T lambda with (K_ff K_ff^T)_CC lambda = F_raw,C: the minimum-norm x whose forces
-// F_raw + K_ff x vanish on C.
-Eigen::VectorXd SupportRefit::constraint_form(const std::vector<int>& cd,
-                                              const Eigen::VectorXd& fraw) const {
-  const int m = 3 * nf_, c = static_cast<int>(cd.size());
-  if (c == 0) return Eigen::VectorXd::Zero(m);
+  const int m = 3 * owner.nf_, c = static_cast<int>(cd_.size());
   std::vector<int> pos(m, -1);
-  for (int a = 0; a < c; ++a) pos[cd[a]] = a;
+  for (int a = 0; a < c; ++a) pos[cd_[a]] = a;
   std::vector<Eigen::Triplet<double>> trip;
   for (int a = 0; a < c; ++a)
-    for (SparseMatrixd::InnerIterator it(KKt_, cd[a]); it; ++it)
+    for (SparseMatrixd::InnerIterator it(owner.KKt_, cd_[a]); it; ++it)
       if (pos[it.row()] >= 0) trip.emplace_back(pos[it.row()], a, it.value());
   SparseMatrixd Mcc(c, c);
   Mcc.setFromTriplets(trip.begin(), trip.end());
-  const Eigen::SimplicialLLT<SparseMatrixd> llt(Mcc);
-  require(llt.info() == Eigen::Success, "refit: the constraint system is not positive definite");
+  mcc_.compute(Mcc);
+  require(mcc_.info() == Eigen::Success, "refit: the constraint system is not positive definite");
+}
+
+// Dense form: f_S from H_SS f_S = (H F_raw)_S, then x = K_ff^{-1} (f - F_raw).
+// Sparse form: x = -K_C^T lambda with (K_ff K_ff^T)_CC lambda = F_raw,C, the minimum-norm x
+// whose forces F_raw + K_ff x vanish on C.
+Eigen::VectorXd SupportRefit::Factored::solve(const Eigen::VectorXd& fraw) const {
+  const SupportRefit& o = owner_;
+  if (dense_) {
+    const int s = static_cast<int>(sd_.size());
+    Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * o.nf_);
+    if (s > 0) {
+      Eigen::VectorXd rhs(s);
+      for (int a = 0; a < s; ++a) rhs(a) = o.H_.col(sd_[a]).dot(fraw);  // H symmetric
+      const Eigen::VectorXd fs = hss_.solve(rhs);
+      for (int a = 0; a < s; ++a) f(sd_[a]) = fs(a);
+    }
+    return o.lu_.solve(Eigen::VectorXd(f - fraw));
+  }
+  const int c = static_cast<int>(cd_.size());
+  if (c == 0) return Eigen::VectorXd::Zero(3 * o.nf_);
   Eigen::VectorXd rhs(c);
-  for (int a = 0; a < c; ++a) rhs(a) = fraw(cd[a]);
-  const Eigen::VectorXd lambda = llt.solve(rhs);
-  Eigen::VectorXd lam = Eigen::VectorXd::Zero(m);
-  for (int a = 0; a < c; ++a) lam(cd[a]) = lambda(a);
-  return -(KffT_ * lam);
+  for (int a = 0; a < c; ++a) rhs(a) = fraw(cd_[a]);
+  const Eigen::VectorXd lambda = mcc_.solve(rhs);
+  Eigen::VectorXd lam = Eigen::VectorXd::Zero(3 * o.nf_);
+  for (int a = 0; a < c; ++a) lam(cd_[a]) = lambda(a);
+  return -(o.KffT_ * lam);
 }
 
 }  // namespace bubble

@@ -20,9 +20,12 @@
 // takes the support form while the support is small, the constraint form once it is not.
 #pragma once
 
+#include <Eigen/Cholesky>
 #include <Eigen/Core>
+#include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <Eigen/SparseLU>
+#include <vector>
 
 #include "membrane.h"
 
@@ -41,6 +44,28 @@ class SupportRefit {
   RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
                      const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const;
 
+  // One support's system, factored once for any number of refits on that support (the
+  // nonlinear refit's modified-Newton steps keep the support): the dense support form or the
+  // sparse constraint form, whichever is cheaper. Valid while its SupportRefit lives.
+  class Factored {
+   public:
+    Factored(const SupportRefit& owner,
+             const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support);
+    // The correction x (3 nf) for raw forces fraw (3 nf).
+    Eigen::VectorXd solve(const Eigen::VectorXd& fraw) const;
+
+   private:
+    const SupportRefit& owner_;
+    std::vector<int> sd_, cd_;  // support and constrained dofs (free numbering)
+    bool dense_ = true;
+    Eigen::LLT<Eigen::MatrixXd> hss_;          // H_SS (dense form)
+    Eigen::SimplicialLLT<SparseMatrixd> mcc_;  // (K_ff K_ff^T)_CC (sparse form)
+  };
+
+  // refit() on a support factored once.
+  RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
+                     const Factored& system) const;
+
   // The linear model's forces K W - dp a n (N x 3, N) for displacements W (N x 3, m).
   RowMatrixX3d linear_forces(const RowMatrixX3d& W, double dp) const;
   // K_ff^{-1} q on the free nodes (N x 3, m; rim rows 0) for nodal forces q (N x 3, N; the rim
@@ -54,10 +79,6 @@ class SupportRefit {
  private:
   // Raw forces at dU = 0 on the free dofs (3 nf): K U0 - dp a n.
   Eigen::VectorXd raw_forces(const RowMatrixX3d& U0, double dp) const;
-  // The correction x (3 nf) from the support's dofs sd (dense |S| system).
-  Eigen::VectorXd support_form(const std::vector<int>& sd, const Eigen::VectorXd& fraw) const;
-  // The same x from the constrained dofs cd, the free dofs off the support (sparse system).
-  Eigen::VectorXd constraint_form(const std::vector<int>& cd, const Eigen::VectorXd& fraw) const;
 
   int n_ = 0, nf_ = 0;
   Eigen::VectorXi free_;  // free index -> node

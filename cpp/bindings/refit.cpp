@@ -53,19 +53,20 @@ void bind_refit(py::module_& m) {
            py::arg("refit"), py::arg("green"), py::keep_alive<1, 2>(), py::keep_alive<1, 3>())
       .def(
           "refit",
-          [](const NR& self, const ArrD& u, const ArrD& v, double dp, const ArrB& support,
-             int iterations) {
+          [](const NR& self, const ArrD& u, double dp, const ArrB& support, int iterations) {
             bubble::require(u.ndim() == 2 && u.shape(1) == 3, "U must be N x 3");
-            bubble::require(v.ndim() == 2 && v.shape(1) == 3, "V_linear must be N x 3");
             bubble::require(support.ndim() == 1, "support must be 1-D");
             Eigen::Map<const RowMatrixX3d> U(u.data(), u.shape(0), 3);
-            Eigen::Map<const RowMatrixX3d> V(v.data(), v.shape(0), 3);
             Eigen::Map<const Eigen::Matrix<bool, Eigen::Dynamic, 1>> s(support.data(),
                                                                        support.shape(0));
-            py::gil_scoped_release release;
-            return self.refit(U, V, dp, s, iterations);
+            NR::Result r;
+            {
+              py::gil_scoped_release release;
+              r = self.refit(U, dp, s, iterations);
+            }
+            return py::make_tuple(py::cast(std::move(r.linear)), py::cast(std::move(r.nonlinear)));
           },
-          py::arg("U").noconvert(), py::arg("V_linear").noconvert(), py::arg("dp"),
-          py::arg("support").noconvert(), py::arg("iterations"))
+          py::arg("U").noconvert(), py::arg("dp"), py::arg("support").noconvert(),
+          py::arg("iterations"))
       .def_property_readonly("n_nodes", &NR::n_nodes);
 }

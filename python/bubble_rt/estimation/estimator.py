@@ -216,28 +216,11 @@ class ForceEstimator:
         U = np.asarray(U, dtype=np.float64)
         if res.info.status == "non_finite_input":
             support = np.zeros(self.mesh.n_nodes, bool)
-            V = U + res.dU
+            V, V_nl = U + res.dU, None
         else:
             support = self.support(res.dual)
-            V = np.asarray(self._refit.refit(np.ascontiguousarray(U), float(dp), support))
+            V, V_nl = self._refit_on(U, float(dp), support)
         V[self.mesh.boundary] = 0.0  # exact already; removes the -0.0 / round-off noise
-        V_nl = None
-        if self.config.nonlinear_iterations > 0 and support.any():
-            # The refit with the nonlinear membrane's forces: the smallest correction x of U
-            # whose GreenMembrane forces vanish off the support, from the linear refit's
-            # V = U + x0 by modified Newton steps on the linear stiffness K. Each step is the
-            # linear refit of a shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its
-            # raw forces are then F_nl(U + x) - K x, so its constraint is the linearisation of
-            # F_nl about U + x and its correction is still measured from U (C++, GIL released).
-            V_nl = np.asarray(
-                self._nonlinear_refit.refit(
-                    np.ascontiguousarray(U),
-                    V,
-                    float(dp),
-                    support,
-                    int(self.config.nonlinear_iterations),
-                )
-            )
         t2 = time.perf_counter()
         est = self._post(V, V_nl, float(dp), res.info, support)
         est.timings_ms = {
@@ -261,6 +244,24 @@ class ForceEstimator:
         return np.ascontiguousarray(
             self._interior & (y >= (1.0 - self.config.support_tol) * self.config.k_f)
         )
+
+    def _refit_on(
+        self, U: NDArray[np.float64], dp: float, support: NDArray[np.bool_]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """The linear refit's V and, with ``nonlinear_iterations`` > 0 and a support, the
+        nonlinear refit's V_nl (else None), C++ with the GIL released. The nonlinear refit is
+        the smallest correction x of U whose GreenMembrane forces vanish off the support, from
+        V = U + x0 by modified Newton steps on the linear stiffness K. Each step is the linear
+        refit of a shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its raw forces
+        are then F_nl(U + x) - K x, so its constraint is the linearisation of F_nl about U + x
+        and its correction is still measured from U. The support's system is factored once
+        for the linear refit and every step."""
+        U = np.ascontiguousarray(U)
+        steps = int(self.config.nonlinear_iterations)
+        if steps == 0 or not support.any():
+            return np.asarray(self._refit.refit(U, dp, support)), None
+        V, V_nl = self._nonlinear_refit.refit(U, dp, support, steps)
+        return np.asarray(V), np.asarray(V_nl)
 
     def _post(
         self,
