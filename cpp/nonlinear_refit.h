@@ -22,11 +22,17 @@ class NonlinearRefit {
   NonlinearRefit(const SupportRefit& refit, const GreenMembrane& green);
 
   // The linear refit's V and the nonlinear one's W (both N x 3, m, rim rows exactly 0): W after
-  // `iterations` modified Newton steps from V, for displacements U (N x 3), pressure change dp
-  // (Pa) and the support (N bools), the support's system factored once for all of them.
-  // Throws InputError on a wrong shape, non-finite input or iterations < 0.
+  // up to `iterations` modified Newton steps from V, for displacements U (N x 3), pressure
+  // change dp (Pa) and the support (N bools), the support's system factored once for all of
+  // them. A step is kept while the nonlinear forces off the support (the constraint's
+  // residual) stay within twice the linear refit's: far outside the membrane's range
+  // (centimetres of tracking noise, a dent deeper than the bubble) the iteration diverges, and
+  // W stops at the last step within that bound; `steps` counts the kept ones (0: W = V, whose
+  // nonlinear forces are not to be trusted). Throws InputError on a wrong shape, non-finite input
+  // or iterations < 0.
   struct Result {
     RowMatrixX3d linear, nonlinear;
+    int steps = 0;
   };
   Result refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
                const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
@@ -37,6 +43,10 @@ class NonlinearRefit {
  private:
   // U + x with the rim rows set to exactly 0.
   RowMatrixX3d clamped(const RowMatrixX3d& U, const RowMatrixX3d& x) const;
+  // The norm of the forces F on the free nodes off the support.
+  double off_support_norm(
+      const RowMatrixX3d& F,
+      const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const;
 
   const SupportRefit& refit_;
   const GreenMembrane& green_;

@@ -64,7 +64,8 @@ void bind_refit(py::module_& m) {
               py::gil_scoped_release release;
               r = self.refit(U, dp, s, iterations);
             }
-            return py::make_tuple(py::cast(std::move(r.linear)), py::cast(std::move(r.nonlinear)));
+            return py::make_tuple(py::cast(std::move(r.linear)), py::cast(std::move(r.nonlinear)),
+                                  r.steps);
           },
           py::arg("U").noconvert(), py::arg("dp"), py::arg("support").noconvert(),
           py::arg("iterations"))

@@ -255,13 +255,16 @@ class ForceEstimator:
         refit of a shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its raw forces
         are then F_nl(U + x) - K x, so its constraint is the linearisation of F_nl about U + x
         and its correction is still measured from U. The support's system is factored once
-        for the linear refit and every step."""
+        for the linear refit and every step; a step whose nonlinear forces off the support
+        exceed twice the linear refit's (diverging) is not taken."""
         U = np.ascontiguousarray(U)
         steps = int(self.config.nonlinear_iterations)
         if steps == 0 or not support.any():
             return np.asarray(self._refit.refit(U, dp, support)), None
-        V, V_nl = self._nonlinear_refit.refit(U, dp, support, steps)
-        return np.asarray(V), np.asarray(V_nl)
+        V, V_nl, kept = self._nonlinear_refit.refit(U, dp, support, steps)
+        # No step converged (far outside the membrane's range: centimetres of tracking noise,
+        # a dent deeper than the bubble): the linear model's forces, which stay bounded.
+        return np.asarray(V), (np.asarray(V_nl) if kept > 0 else None)
 
     def _post(
         self,
