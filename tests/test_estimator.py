@@ -136,9 +136,10 @@ def test_pressure_only_gives_uniform_inward_pressure_before_regularisation():
 
 
 # ------------------------------------------------------------------ inflated model + refit
-def _inflated_field(est: ForceEstimator, forces: dict[int, np.ndarray], dp: float) -> np.ndarray:
-    """Displacements under which the estimator's own model gives exactly ``forces`` on the
-    named interior nodes and zero elsewhere (rim clamped)."""
+def _free_system(
+    est: ForceEstimator, forces: dict[int, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(free dofs, dense K on them, N x 3 target forces: ``forces`` on the named nodes)."""
     mesh = est.mesh
     free = np.flatnonzero(mesh.interior)
     fd = (3 * free[:, None] + np.arange(3)).ravel()
@@ -146,8 +147,15 @@ def _inflated_field(est: ForceEstimator, forces: dict[int, np.ndarray], dp: floa
     f = np.zeros((mesh.n_nodes, 3))
     for i, v in forces.items():
         f[i] = v
+    return fd, K, f
+
+
+def _inflated_field(est: ForceEstimator, forces: dict[int, np.ndarray], dp: float) -> np.ndarray:
+    """Displacements under which the estimator's own model gives exactly ``forces`` on the
+    named interior nodes and zero elsewhere (rim clamped)."""
+    fd, K, f = _free_system(est, forces)
     rhs = (f + dp * est.model.area_normals).ravel()[fd]
-    U = np.zeros(3 * mesh.n_nodes)
+    U = np.zeros(3 * est.mesh.n_nodes)
     U[fd] = np.linalg.solve(K, rhs)
     return U.reshape(-1, 3)
 
@@ -157,14 +165,8 @@ def _nonlinear_field(
 ) -> np.ndarray:
     """Displacements under which the estimator's nonlinear membrane (``GreenMembrane``) gives
     ``forces`` on the named interior nodes and zero elsewhere (Newton on the linear K)."""
-    mesh = est.mesh
-    free = np.flatnonzero(mesh.interior)
-    fd = (3 * free[:, None] + np.arange(3)).ravel()
-    K = est.model.stiffness.tocsr()[fd][:, fd].toarray()
-    f = np.zeros((mesh.n_nodes, 3))
-    for i, v in forces.items():
-        f[i] = v
-    U = np.zeros((mesh.n_nodes, 3))
+    fd, K, f = _free_system(est, forces)
+    U = np.zeros((est.mesh.n_nodes, 3))
     for _ in range(steps):
         r = (f - est.model.nonlinear.external_forces(U, dp)).ravel()[fd]
         U.reshape(-1)[fd] += np.linalg.solve(K, r)
