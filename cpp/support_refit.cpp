@@ -107,12 +107,13 @@ RowMatrixX3d SupportRefit::refit(const Eigen::Ref<const RowMatrixX3d>& U, double
 }
 
 Eigen::VectorXd SupportRefit::raw_forces(const RowMatrixX3d& U0, double dp) const {
-  const Eigen::Map<const Eigen::VectorXd> u0(U0.data(), 3 * n_);
-  const Eigen::VectorXd ku = K_ * u0;
-  Eigen::VectorXd fraw(3 * nf_);
-  for (int j = 0; j < nf_; ++j)
-    for (int d = 0; d < 3; ++d) fraw(3 * j + d) = ku(3 * free_(j) + d) - dp * an_(free_(j), d);
-  return fraw;
+  return free_rows(linear_forces(U0, dp));
+}
+
+Eigen::VectorXd SupportRefit::free_rows(const RowMatrixX3d& A) const {
+  Eigen::VectorXd a(3 * nf_);
+  for (int j = 0; j < nf_; ++j) a.segment<3>(3 * j) = A.row(free_(j)).transpose();
+  return a;
 }
 
 RowMatrixX3d SupportRefit::linear_forces(const RowMatrixX3d& W, double dp) const {
@@ -124,9 +125,7 @@ RowMatrixX3d SupportRefit::linear_forces(const RowMatrixX3d& W, double dp) const
 }
 
 RowMatrixX3d SupportRefit::solve_free(const RowMatrixX3d& q) const {
-  Eigen::VectorXd qf(3 * nf_);
-  for (int j = 0; j < nf_; ++j) qf.segment<3>(3 * j) = q.row(free_(j)).transpose();
-  const Eigen::VectorXd x = lu_.solve(qf);
+  const Eigen::VectorXd x = lu_.solve(free_rows(q));
   RowMatrixX3d X = RowMatrixX3d::Zero(n_, 3);
   for (int j = 0; j < nf_; ++j) X.row(free_(j)) = x.segment<3>(3 * j).transpose();
   return X;

@@ -79,6 +79,8 @@ class SupportRefit {
  private:
   // Raw forces at dU = 0 on the free dofs (3 nf): K U0 - dp a n.
   Eigen::VectorXd raw_forces(const RowMatrixX3d& U0, double dp) const;
+  // The free nodes' rows of an N x 3 array as one 3 nf vector (free numbering).
+  Eigen::VectorXd free_rows(const RowMatrixX3d& A) const;
 
   int n_ = 0, nf_ = 0;
   Eigen::VectorXi free_;  // free index -> node
