@@ -28,24 +28,38 @@ NonlinearRefit::Result NonlinearRefit::refit(
   out.linear = refit_.refit(U, dp, system);  // rim rows exactly 0
   RowMatrixX3d W = out.linear;
   RowMatrixX3d F = green_.external_forces(W, dp);
-  // Modified Newton on the linear K stalls on firm presses (the off-support residual 2.12 ->
-  // 1.83 -> 2.04 N on a 12 mm dent, the net force still converging) and explodes far outside
-  // the membrane's range (8 -> 22 -> 978 N on a 20 mm one): a step is kept while its residual
+  // Modified Newton on the linear K explodes far outside the membrane's range, line search
+  // or not (8 -> 22 -> 978 N on a 20 mm dent, full steps): a step is kept while its residual
   // stays within kMaxGrowth of the linear refit's.
   constexpr double kMaxGrowth = 2.0;
   const double limit = kMaxGrowth * off_support_norm(F, support);
   for (int k = 0; k < iterations; ++k) {
     const RowMatrixX3d U0 = U + refit_.solve_free(F - refit_.linear_forces(W, dp));
-    const RowMatrixX3d W_next = clamped(U, refit_.refit(U0, dp, system) - U0);
-    const RowMatrixX3d F_next = green_.external_forces(W_next, dp);
-    const double r = off_support_norm(F_next, support);
-    if (!(r <= limit)) break;  // diverging (or NaN): keep the last step within the bound
-    W = W_next;
-    F = F_next;
+    const RowMatrixX3d W_step = clamped(U, refit_.refit(U0, dp, system) - U0);
+    const Trial next = line_search(W, W_step, dp, support);
+    if (!(next.residual <= limit)) break;  // diverging (or NaN): keep the last step within it
+    W = next.W;
+    F = next.F;
     ++out.steps;
   }
   out.nonlinear = W;
   return out;
+}
+
+NonlinearRefit::Trial NonlinearRefit::line_search(
+    const RowMatrixX3d& W, const RowMatrixX3d& W_step, double dp,
+    const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support) const {
+  // The solve is the step's cost; a trial is one evaluation of the nonlinear forces.
+  constexpr double kFractions[] = {1.0, 0.5, 0.25};
+  Trial best;
+  for (const double a : kFractions) {
+    Trial t;
+    t.W = W + a * (W_step - W);
+    t.F = green_.external_forces(t.W, dp);
+    t.residual = off_support_norm(t.F, support);
+    if (t.residual < best.residual) best = std::move(t);  // NaN never; ties keep the longer step
+  }
+  return best;
 }
 
 double NonlinearRefit::off_support_norm(

@@ -426,12 +426,32 @@ def test_every_estimator_key_of_a_config_reaches_the_evaluated_estimator(tmp_pat
     assert {"support_tol", "nonlinear_iterations", "thickness"} <= set(CONFIG_KEYS)
 
 
-def _patch(centroid_mm, force, pressure_centroid_mm=None):
+def _patch(centroid_mm, force, pressure_centroid_mm=None, area_cm2=float("nan")):
     from types import SimpleNamespace
 
     c = np.asarray(centroid_mm, float) / 1e3
     pc = c if pressure_centroid_mm is None else np.asarray(pressure_centroid_mm, float) / 1e3
-    return SimpleNamespace(centroid=c, pressure_centroid=pc, force=np.asarray(force, float))
+    return SimpleNamespace(
+        centroid=c, pressure_centroid=pc, force=np.asarray(force, float), area=area_cm2 / 1e4
+    )
+
+
+def test_patch_area_is_scored_against_the_matched_true_patch():
+    from bubble_rt.eval.metrics import patch_scores
+
+    truth = [
+        _patch([-12.5, 0, 30], [0, 0, -2.0], area_cm2=0.5),
+        _patch([12.5, 0, 30], [0, 0, -3.0], area_cm2=1.0),
+    ]
+    # listed in the other order: each is scored against the true patch it is nearest to
+    est = [
+        _patch([-13, 0, 30], [0, 0, -2.0], area_cm2=1.5),
+        _patch([13, 0, 30], [0, 0, -3.0], area_cm2=0.8),
+    ]
+    assert patch_scores(est, truth).area_ratio == pytest.approx([0.8, 3.0])
+    # a true patch with no area (or no match) is not scored
+    assert patch_scores(est[:1], truth).area_ratio == pytest.approx([1.5 / 1.0])
+    assert patch_scores(est, [_patch([0, 0, 30], [0, 0, -3.0])]).area_ratio == []
 
 
 def test_patch_scores_match_centroids_and_find_two_contacts():
@@ -468,6 +488,7 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
             tau_gt=[0.01, 0, 0],
             centroid_err_mm=[1.0, 3.0],
             pressure_centroid_err_mm=[0.5, 1.0],
+            patch_area_ratio=[0.5, 1.1],
             two_contact=True,
             two_found=True,
         ),
@@ -479,7 +500,7 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
             pressure_centroid_err_mm=[float("nan")],
             two_contact=True,
         ),
-        replace(base, tau_est=[0, 0, 0.02], tau_gt=[0, 0, 0.01]),
+        replace(base, tau_est=[0, 0, 0.02], tau_gt=[0, 0, 0.01], patch_area_ratio=[2.0]),
         # under 1 N: not scored however wrong
         replace(
             base,
@@ -487,6 +508,7 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
             tau_est=[1, 1, 1],
             tau_gt=[0, 0, 0.001],
             centroid_err_mm=[50.0],
+            patch_area_ratio=[9.0],
             two_contact=True,
         ),
     ]
@@ -499,6 +521,9 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
     assert st["centroid_within_tol"] == pytest.approx(1 / 3)
     assert st["pressure_centroid_within_tol"] == pytest.approx(2 / 3)
     assert st["two_contact_rate"] == pytest.approx(0.5) and st["n_two_contact"] == 2
+    assert st["patch_area_ratio"] == pytest.approx(1.1)  # median of 0.5, 1.1, 2.0 (not 9)
+    assert st["patch_area_rel_err"] == pytest.approx(0.5)  # median of 0.5, 0.1, 1.0
     s = summarize(recs)
     assert s["average"]["fem"]["torque_rel_err"] == pytest.approx(0.3)
     assert "two contacts found" in markdown_table(s)
+    assert "patch area / truth" in markdown_table(s)

@@ -43,6 +43,9 @@ Wrench and patch geometry (frames whose true net force is at least :data:`WRENCH
   centroid to the patch's area-weighted ``centroid`` and to its ``pressure_centroid`` (mm), or
   NaN when no estimated patch is left (counted as missed). Medians over all scored true
   patches, and the share within :data:`CENTROID_TOL_MM`.
+- Patch area: each matched patch's ``area`` over its true patch's (the lumped areas of the
+  true contact nodes on the simulation's finer mesh, the same convention), median
+  ``patch_area_ratio`` and median ``patch_area_rel_err`` ``|ratio - 1|`` over matched patches.
 - Two contacts: frames whose truth has exactly two patches of at least :data:`PATCH_MIN_N`
   (the ``split`` indenter's two pins, both pressing); found when the estimate has exactly two
   patches, matched one to one, each patch force within :data:`PATCH_FORCE_TOL` of its true
@@ -172,6 +175,8 @@ class FrameMetrics:
     #: per scored true patch: centroid errors (mm; NaN = no estimated patch matched)
     centroid_err_mm: list[float] = field(default_factory=list)
     pressure_centroid_err_mm: list[float] = field(default_factory=list)
+    #: per matched true patch: estimated patch area / true patch area
+    patch_area_ratio: list[float] = field(default_factory=list)
     #: the truth has two scored patches / the estimate found them (see the module docstring)
     two_contact: bool = False
     two_found: bool = False
@@ -185,6 +190,7 @@ class PatchScore:
 
     centroid_err_mm: list[float]
     pressure_centroid_err_mm: list[float]
+    area_ratio: list[float]
     two_contact: bool
     two_found: bool
     two_found_magnitude: bool
@@ -195,13 +201,15 @@ def patch_scores(est_patches: Sequence[Any], true_patches: Sequence[Any]) -> Pat
 
     Args:
         est_patches: estimated patches (``centroid``, ``pressure_centroid``, ``force``; m, N).
-        true_patches: true patches (``centroid``: force-weighted, m; ``force`` N).
+        true_patches: true patches (``centroid``: force-weighted, m; ``force`` N; ``area``
+            m^2, optional).
     """
     scored = [t for t in true_patches if float(np.linalg.norm(t.force)) >= PATCH_MIN_N]
     scored.sort(key=lambda t: -float(np.linalg.norm(t.force)))
     free = list(range(len(est_patches)))
     err_a: list[float] = []
     err_p: list[float] = []
+    area: list[float] = []
     pairs: list[tuple[Any, Any]] = []
     for t in scored:
         c = np.asarray(t.centroid, dtype=np.float64)
@@ -216,6 +224,9 @@ def patch_scores(est_patches: Sequence[Any], true_patches: Sequence[Any]) -> Pat
         pc = pc if pc.size == 3 else np.asarray(e.centroid, dtype=np.float64)
         err_a.append(1e3 * min(d))
         err_p.append(1e3 * float(np.linalg.norm(pc - c)))
+        true_area = float(getattr(t, "area", float("nan")))
+        if true_area > 0:
+            area.append(float(getattr(e, "area", float("nan"))) / true_area)
         pairs.append((e, t))
     two = len(scored) == 2 and len(est_patches) == 2 and len(pairs) == 2
 
@@ -227,7 +238,7 @@ def patch_scores(est_patches: Sequence[Any], true_patches: Sequence[Any]) -> Pat
 
     found = two and all(close(e, t, False) for e, t in pairs)
     found_mag = two and all(close(e, t, True) for e, t in pairs)
-    return PatchScore(err_a, err_p, len(scored) == 2, bool(found), bool(found_mag))
+    return PatchScore(err_a, err_p, area, len(scored) == 2, bool(found), bool(found_mag))
 
 
 def relative_error(est: Sequence[float] | NDArray, truth: Sequence[float] | NDArray) -> float:
@@ -255,6 +266,7 @@ def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
     ca = [x for r in recs for x in r.centroid_err_mm]
     cp = [x for r in recs for x in r.pressure_centroid_err_mm]
     two = [r for r in recs if r.two_contact]
+    area = [x for r in recs for x in r.patch_area_ratio]
 
     def med(v: list[float]) -> float:
         v = [x for x in v if not math.isnan(x)]
@@ -272,6 +284,8 @@ def wrench_stats(records: Sequence[FrameMetrics]) -> dict[str, float]:
         "pressure_centroid_err_mm": med(cp),
         "centroid_within_tol": within(ca),
         "pressure_centroid_within_tol": within(cp),
+        "patch_area_ratio": med(area),
+        "patch_area_rel_err": med([abs(x - 1.0) for x in area]),
         "two_contact_rate": (sum(r.two_found for r in two) / len(two) if two else float("nan")),
         "two_contact_magnitude_rate": (
             sum(r.two_found_magnitude for r in two) / len(two) if two else float("nan")
@@ -292,6 +306,8 @@ WRENCH_KEYS = (
     "pressure_centroid_err_mm",
     "centroid_within_tol",
     "pressure_centroid_within_tol",
+    "patch_area_ratio",
+    "patch_area_rel_err",
     "two_contact_rate",
     "two_contact_magnitude_rate",
     "n_wrench",

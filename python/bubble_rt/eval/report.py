@@ -80,6 +80,7 @@ def wrench_table(summary: dict[str, Any]) -> str:
         ("centroid err (mm)", "centroid_err_mm", 2),
         ("pressure centroid err (mm)", "pressure_centroid_err_mm", 2),
         (f"pressure centroid <= {tol:g} mm", "pressure_centroid_within_tol", 2),
+        ("patch area / truth", "patch_area_ratio", 2),
         ("two contacts found", "two_contact_rate", 2),
         ("two contacts found (magnitudes)", "two_contact_magnitude_rate", 2),
     ]
@@ -106,7 +107,8 @@ def wrench_table(summary: dict[str, Any]) -> str:
         f"\nwrench scores over frames with true |f| >= {th['wrench_min_n']:g} N: torque err = "
         "|tau - tau_gt| / |tau_gt| about the mesh origin; centroid errors from each true patch "
         f"of >= {th['patch_min_n']:g} N (force-weighted centroid) to its matched estimated "
-        "patch (area-weighted `centroid`, normal-force-weighted `pressure_centroid`); two "
+        "patch (area-weighted `centroid`, normal-force-weighted `pressure_centroid`); patch "
+        "area / truth: median over matched patches; two "
         "contacts found: exactly two estimated patches, each force within "
         f"{100 * th['patch_force_tol']:g} % (as vectors, or as magnitudes); torque err vs "
         "untouched positions: against the truth's forces at the nodes' untouched positions, "

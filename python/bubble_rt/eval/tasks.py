@@ -295,6 +295,7 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
                 tau_gt_reference=[float(x) for x in frame.truth.net_torque(at_reference=True)],
                 centroid_err_mm=ps.centroid_err_mm,
                 pressure_centroid_err_mm=ps.pressure_centroid_err_mm,
+                patch_area_ratio=ps.area_ratio,
                 two_contact=ps.two_contact,
                 two_found=ps.two_found,
                 two_found_magnitude=ps.two_found_magnitude,

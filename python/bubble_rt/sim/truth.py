@@ -118,12 +118,14 @@ class SurfaceLocator:
 @dataclass(frozen=True)
 class TruePatch:
     """One true contact patch: simulation node indices, force (3,) N the indenter applies on
-    them, and their force-weighted centroid (3,) m, ``sum |f_j| x_j / sum |f_j|`` at the
-    nodes' current positions."""
+    them, their force-weighted centroid (3,) m, ``sum |f_j| x_j / sum |f_j|`` at the nodes'
+    current positions, and its area (m^2): the lumped areas of its nodes on the untouched
+    simulation surface (the convention of an estimated patch's ``area``, on a finer mesh)."""
 
     nodes: NDArray[np.int64]
     force: NDArray[np.float64]
     centroid: NDArray[np.float64]
+    area: float = float("nan")
 
 
 @dataclass
@@ -177,7 +179,7 @@ class GroundTruth:
         contact force, each with its force and force-weighted centroid."""
         from scipy.sparse.csgraph import connected_components
 
-        from bubble_rt.mesh import edge_adjacency
+        from bubble_rt.mesh import edge_adjacency, lumped_areas
 
         f = np.asarray(self.node_forces, dtype=np.float64)
         mag = np.linalg.norm(f, axis=1)
@@ -188,6 +190,7 @@ class GroundTruth:
         A = edge_adjacency(self.sim_triangles, len(f))[idx][:, idx]
         n_comp, labels = connected_components(A, directed=False)
         x = np.asarray(self.sim_vertices, dtype=np.float64)
+        areas = lumped_areas(np.asarray(self.sim_reference_vertices), self.sim_triangles)
         out = []
         for c in range(n_comp):
             nodes = idx[labels == c]
@@ -200,6 +203,7 @@ class GroundTruth:
                     nodes=nodes,
                     force=f[nodes].sum(axis=0),
                     centroid=(w / total) @ x[nodes],
+                    area=float(areas[nodes].sum()),
                 )
             )
         out.sort(key=lambda p: -float(np.linalg.norm(p.force)))
