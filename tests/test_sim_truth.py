@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from bubble_rt.mesh import Mesh
 from bubble_rt.sim.truth import GroundTruth, SurfaceLocator, closest_points_on_triangles
 
@@ -129,3 +130,7 @@ def test_true_torque_and_patches_from_the_contact_forces():
     np.testing.assert_allclose(big.force, [0.2, 0, -3.0])
     np.testing.assert_allclose(big.centroid, x[right[0]])
     np.testing.assert_allclose(small.centroid, x[left[0]])
+    # each patch's area: its nodes' lumped areas on the untouched surface
+    areas = sim.lumped_areas()
+    assert big.area == pytest.approx(areas[right].sum())
+    assert small.area == pytest.approx(areas[left].sum())
