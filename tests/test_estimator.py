@@ -377,6 +377,10 @@ def test_nonlinear_refit_matches_the_numpy_reference(depth):
     kept = est._nonlinear_refit.refit(U, dp, e.support, est.config.nonlinear_iterations)[2]
     assert kept == 2
     want = _numpy_nonlinear_refit(est, U, V, dp, e.support, kept)
+    # the contact rule (and the patches' load centre) reads the linear refit's pressure
+    rule = est.model.normal_pressure(est.model.external_forces(V, dp))
+    np.testing.assert_allclose(e.rule_pressure, rule, rtol=1e-9, atol=1e-9 * np.abs(rule).max())
+    assert not np.allclose(e.rule_pressure, e.normal_pressure)
     scale = np.abs(want).max()
     assert np.abs(e.displacements - want).max() <= 1e-9 * scale
     assert np.all(e.displacements[est.mesh.boundary] == 0.0)

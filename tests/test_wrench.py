@@ -70,6 +70,38 @@ def test_given_normal_pressure_sets_the_peak_and_a_tension_does_not_pull_the_loa
     np.testing.assert_allclose(p.pressure_centroid, (w / w.sum()) @ mesh.vertices)
 
 
+def test_the_rule_pressure_weights_the_load_centre_and_the_reported_one_sets_the_peak():
+    # The estimator reports the nonlinear refit's pressure (gathered at a dent's edge) and
+    # places the load's centre with the linear refit's (Estimate.rule_pressure).
+    from types import SimpleNamespace
+
+    mesh = flat_grid()
+    pf = PatchFinder(mesh)
+    forces = np.zeros((9, 3))
+    forces[:, 2] = -1.0
+    reported = np.full(9, 100.0)
+    reported[8] = 900.0  # the corner (H, H)
+    rule = np.full(9, 100.0)
+    rule[0] = 500.0  # the corner (-H, -H)
+    e = SimpleNamespace(
+        contact=np.ones(9, bool),
+        node_forces=forces,
+        displacements=None,
+        normal_pressure=reported,
+        support=None,
+        rule_pressure=rule,
+    )
+    (p,) = pf.patches_of(e)
+    assert p.peak_pressure == 900.0
+    w = rule * pf.areas
+    np.testing.assert_allclose(p.pressure_centroid, (w / w.sum()) @ mesh.vertices)
+    assert p.pressure_centroid[0] < 0 and p.pressure_centroid[1] < 0
+    # without a rule pressure (the frictionless baseline) the reported one weights it
+    e.rule_pressure = np.zeros(0)
+    (q,) = pf.patches_of(e)
+    assert q.pressure_centroid[0] > 0 and q.pressure_centroid[1] > 0
+
+
 def test_a_patch_carries_the_force_of_the_support_around_it():
     # 7 x 7 grid, one row y = 0: contact at columns 1 and 5, force on columns 0-6 of that row
     # (the estimator's support) plus a loaded node at a far corner, away from any contact.

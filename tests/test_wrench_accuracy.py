@@ -38,9 +38,7 @@ def _run(geometry: str, trajectory: int) -> list[dict[str, Any]]:
                 "f_gt": float(np.linalg.norm(frame.truth.net_force)),
                 "tau": finder.net_torque(e.node_forces),
                 "tau_gt": frame.truth.net_torque(),
-                "patches": finder.patches(
-                    e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
-                ),
+                "patches": finder.patches_of(e),
                 "true_patches": frame.truth.patches(),
             }
         )

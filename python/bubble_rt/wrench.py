@@ -5,8 +5,10 @@ ContactPatch normal / peak_pressure / torque / pressure_centroid).
   (the untouched membrane the daemon publishes as its Mesh), about the mesh origin: a
   subscriber recomputes it from a frame's node_forces and the Mesh alone.
 * Patches: connected components of the contact mask over mesh edges. Each carries its
-  area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``) over
-  its contact nodes at their current positions (the mesh's vertices plus the measured
+  area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``; the
+  weights from the estimate's ``rule_pressure`` when it has one, the linear refit's pressure:
+  the nonlinear forces gather at a dent's edge) over its contact nodes at their current
+  positions (the mesh's vertices plus the measured
   displacements, when given), its area, the area-weighted mean outward normal of the mesh
   (unit) and the peak normal pressure over its contact nodes; and the force it carries, with
   that force's torque about ``centroid`` (at the same positions).
@@ -22,6 +24,8 @@ same numbers.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -77,6 +81,7 @@ class PatchFinder:
         displacements: ArrayLike | None = None,
         normal_pressure: ArrayLike | None = None,
         support: ArrayLike | None = None,
+        weight_pressure: ArrayLike | None = None,
     ) -> list[protocol.Patch]:
         """Patches of one frame, largest force first.
 
@@ -88,6 +93,8 @@ class PatchFinder:
             normal_pressure: (N,) inward normal pressure (Pa); when None, ``-n . f / area``.
             support: (N,) bool, the nodes that carry force (the estimator's support); None
                 or empty: each patch carries its contact nodes' forces only.
+            weight_pressure: (N,) Pa, the pressure whose positive part times the lumped area
+                weights ``pressure_centroid``; None or empty: the normal pressure.
         """
         from scipy.sparse.csgraph import connected_components
 
@@ -101,6 +108,14 @@ class PatchFinder:
         else:
             p = np.asarray(normal_pressure, dtype=np.float64).reshape(-1)
         p = np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0)
+        wp = p
+        if weight_pressure is not None and np.size(weight_pressure) == p.size:
+            wp = np.nan_to_num(
+                np.asarray(weight_pressure, dtype=np.float64).reshape(-1),
+                nan=0.0,
+                posinf=0.0,
+                neginf=0.0,
+            )
         pos = self.vertices
         if displacements is not None:
             pos = pos + np.nan_to_num(np.asarray(displacements, dtype=np.float64).reshape(-1, 3))
@@ -116,7 +131,7 @@ class PatchFinder:
             x = pos[nodes]
             centroid = w @ x
             # The load's centre: normal force (positive pressure x area) weights.
-            fn = np.clip(p[nodes], 0.0, None) * a
+            fn = np.clip(wp[nodes], 0.0, None) * a
             total = float(fn.sum())
             pc = (fn / total) @ x if total > 0 else centroid
             load = np.flatnonzero(owner == c)
@@ -136,6 +151,18 @@ class PatchFinder:
             )
         out.sort(key=lambda q: -float(np.linalg.norm(q.force)))
         return out
+
+    def patches_of(self, estimate: Any) -> list[protocol.Patch]:
+        """:meth:`patches` of an estimate (``bubble_rt.estimation.types.Estimate``): its
+        contact, forces, displacements, normal pressure, support and rule pressure."""
+        return self.patches(
+            estimate.contact,
+            estimate.node_forces,
+            estimate.displacements,
+            estimate.normal_pressure,
+            estimate.support,
+            weight_pressure=getattr(estimate, "rule_pressure", None),
+        )
 
     def _load_owner(
         self, idx: NDArray[np.int64], labels: NDArray, support: ArrayLike | None

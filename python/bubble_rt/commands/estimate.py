@@ -318,9 +318,7 @@ def _frame_record(frame: Frame, e: Any, finder: Any, R: Any, tau_mesh: Any) -> d
     import numpy as np
 
     f_mesh = np.asarray(e.net_force, dtype=np.float64)
-    patches = finder.patches(
-        e.contact, e.node_forces, e.displacements, e.normal_pressure, e.support
-    )
+    patches = finder.patches_of(e)
     return {
         "index": int(frame.index),
         "t": float(frame.t),

@@ -465,9 +465,7 @@ class Daemon:
         assert self._patches is not None and self.mesh_msg is not None
         contact = np.asarray(est.contact, dtype=bool)
         forces = np.asarray(est.node_forces, dtype=np.float64)
-        patches = self._patches.patches(
-            contact, forces, est.displacements, est.normal_pressure, est.support
-        )
+        patches = self._patches.patches_of(est)
         msg = protocol.encode_force_frame(
             sensor_id=self.sensor_id,
             seq=self.seq,

@@ -306,6 +306,7 @@ class ForceEstimator:
             displacements=V,
             info=info,
             support=support,
+            rule_pressure=p_rule,
         )
 
     def disc_pressure(self, p: NDArray[np.float64]) -> NDArray[np.float64]:

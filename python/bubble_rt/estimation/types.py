@@ -32,6 +32,10 @@ class Estimate:
             (:mod:`bubble_rt.estimation.plausibility`); empty for a healthy frame.
         pressure_delta_pa: the frame's pressure minus the reference's (Pa), as the estimate
             used it (``Reference.pressure_change``; set by the Pipeline).
+        rule_pressure: (N,) Pa, inward positive: the linear refit's normal pressure, which the
+            contact rule thresholds and which weights a patch's ``pressure_centroid`` (empty:
+            ``normal_pressure`` is that pressure). The nonlinear refit's forces gather at a
+            dent's edge, so their pressure places the load's centre worse (docs/evaluation.md).
     """
 
     node_forces: NDArray[np.float64]
@@ -46,3 +50,4 @@ class Estimate:
     support: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     degraded_reasons: list[str] = field(default_factory=list)
     pressure_delta_pa: float = 0.0
+    rule_pressure: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))

@@ -270,9 +270,7 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
             ms = 1e3 * (time.perf_counter() - ts)
             f_gt = np.asarray(frame.truth.net_force, dtype=float)
             forces = np.asarray(e.node_forces, dtype=float)
-            patches = finder.patches(
-                e.contact, forces, e.displacements, e.normal_pressure, e.support
-            )
+            patches = finder.patches_of(e)
             ps = patch_scores(patches, true_patches[i])
             rec = replace(
                 frame_metrics(
