@@ -34,8 +34,9 @@ NonlinearRefit::Result NonlinearRefit::refit(
   constexpr double kMaxGrowth = 2.0;
   const double limit = kMaxGrowth * off_support_norm(F, support);
   for (int k = 0; k < iterations; ++k) {
-    const RowMatrixX3d U0 = U + refit_.solve_free(F - refit_.linear_forces(W, dp));
-    const RowMatrixX3d W_step = clamped(U, refit_.refit(U0, dp, system) - U0);
+    // the refit of U0 = U + K_ff^{-1} q, q = F_nl(W) - F_lin(W), is U0 + x: W_step = U + x
+    const RowMatrixX3d W_step =
+        clamped(U, refit_.shifted_correction(U, F - refit_.linear_forces(W, dp), dp, system));
     const Trial next = line_search(W, W_step, dp, support);
     if (!(next.residual <= limit)) break;  // diverging (or NaN): keep the last step within it
     W = next.W;

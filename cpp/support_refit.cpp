@@ -106,6 +106,17 @@ RowMatrixX3d SupportRefit::refit(const Eigen::Ref<const RowMatrixX3d>& U, double
   return V;
 }
 
+RowMatrixX3d SupportRefit::shifted_correction(const RowMatrixX3d& U, const RowMatrixX3d& q,
+                                              double dp, const Factored& system) const {
+  RowMatrixX3d U0 = U;
+  for (int i = 0; i < n_; ++i)
+    if (slot_(i) < 0) U0.row(i).setZero();
+  const Eigen::VectorXd x = system.solve(raw_forces(U0, dp) + free_rows(q));
+  RowMatrixX3d X = RowMatrixX3d::Zero(n_, 3);
+  for (int j = 0; j < nf_; ++j) X.row(free_(j)) = x.segment<3>(3 * j).transpose();
+  return X;
+}
+
 Eigen::VectorXd SupportRefit::raw_forces(const RowMatrixX3d& U0, double dp) const {
   return free_rows(linear_forces(U0, dp));
 }
@@ -122,13 +133,6 @@ RowMatrixX3d SupportRefit::linear_forces(const RowMatrixX3d& W, double dp) const
       K_ * Eigen::Map<const Eigen::VectorXd>(W.data(), 3 * n_);
   F -= dp * an_;
   return F;
-}
-
-RowMatrixX3d SupportRefit::solve_free(const RowMatrixX3d& q) const {
-  const Eigen::VectorXd x = lu_.solve(free_rows(q));
-  RowMatrixX3d X = RowMatrixX3d::Zero(n_, 3);
-  for (int j = 0; j < nf_; ++j) X.row(free_(j)) = x.segment<3>(3 * j).transpose();
-  return X;
 }
 
 SupportRefit::Factored::Factored(

@@ -66,11 +66,14 @@ class SupportRefit {
   RowMatrixX3d refit(const Eigen::Ref<const RowMatrixX3d>& U, double dp,
                      const Factored& system) const;
 
+  // The correction x (N x 3, m, rim rows 0) that refit() adds to U0 = U + K_ff^{-1} q, for
+  // nodal forces q (N x 3, N; rim rows ignored), without forming U0: its raw forces on the free
+  // rows are F_raw(U) + q (K_ff K_ff^{-1} q = q), so no solve with K_ff is needed for them.
+  RowMatrixX3d shifted_correction(const RowMatrixX3d& U, const RowMatrixX3d& q, double dp,
+                                  const Factored& system) const;
+
   // The linear model's forces K W - dp a n (N x 3, N) for displacements W (N x 3, m).
   RowMatrixX3d linear_forces(const RowMatrixX3d& W, double dp) const;
-  // K_ff^{-1} q on the free nodes (N x 3, m; rim rows 0) for nodal forces q (N x 3, N; the rim
-  // rows are ignored): the factored K_ff reused.
-  RowMatrixX3d solve_free(const RowMatrixX3d& q) const;
 
   int n_nodes() const { return n_; }
   bool is_free(int node) const { return slot_(node) >= 0; }
