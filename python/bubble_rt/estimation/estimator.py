@@ -254,9 +254,11 @@ class ForceEstimator:
         V = U + x0 by modified Newton steps on the linear stiffness K. Each step is the linear
         refit of a shifted U0 = U + K_ff^-1 q, q = F_nl(U + x) - F_lin(U + x): its raw forces
         are then F_nl(U + x) - K x, so its constraint is the linearisation of F_nl about U + x
-        and its correction is still measured from U. The support's system is factored once
-        for the linear refit and every step; a step whose nonlinear forces off the support
-        exceed twice the linear refit's (diverging) is not taken."""
+        and its correction is still measured from U. Each step is taken as the fraction (1,
+        1/2 or 1/4) of it that leaves the least nonlinear force off the support (full steps
+        overshoot where a firm press stiffens the membrane). The support's system is factored
+        once for the linear refit and every step; a step whose nonlinear forces off the
+        support exceed twice the linear refit's (diverging) is not taken."""
         U = np.ascontiguousarray(U)
         steps = int(self.config.nonlinear_iterations)
         if steps == 0 or not support.any():
