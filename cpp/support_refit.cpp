@@ -96,25 +96,23 @@ RowMatrixX3d SupportRefit::refit(const Eigen::Ref<const RowMatrixX3d>& U, double
   require(U.rows() == n_, "U must be N x 3 with N = " + std::to_string(n_));
   require(U.allFinite(), "U must be finite");
   require(std::isfinite(dp), "dp must be finite");
-  RowMatrixX3d U0 = U;
-  for (int i = 0; i < n_; ++i)
-    if (slot_(i) < 0) U0.row(i).setZero();
-  const Eigen::VectorXd x = system.solve(raw_forces(U0, dp));
-  RowMatrixX3d V = U0;
-  for (int j = 0; j < nf_; ++j)
-    for (int d = 0; d < 3; ++d) V(free_(j), d) += x(3 * j + d);
-  return V;
+  const RowMatrixX3d U0 = rim_zeroed(U);
+  return U0 + shifted_correction(U0, RowMatrixX3d::Zero(n_, 3), dp, system);
 }
 
 RowMatrixX3d SupportRefit::shifted_correction(const RowMatrixX3d& U, const RowMatrixX3d& q,
                                               double dp, const Factored& system) const {
-  RowMatrixX3d U0 = U;
-  for (int i = 0; i < n_; ++i)
-    if (slot_(i) < 0) U0.row(i).setZero();
-  const Eigen::VectorXd x = system.solve(raw_forces(U0, dp) + free_rows(q));
+  const Eigen::VectorXd x = system.solve(raw_forces(rim_zeroed(U), dp) + free_rows(q));
   RowMatrixX3d X = RowMatrixX3d::Zero(n_, 3);
   for (int j = 0; j < nf_; ++j) X.row(free_(j)) = x.segment<3>(3 * j).transpose();
   return X;
+}
+
+RowMatrixX3d SupportRefit::rim_zeroed(const RowMatrixX3d& U) const {
+  RowMatrixX3d U0 = U;
+  for (int i = 0; i < n_; ++i)
+    if (slot_(i) < 0) U0.row(i).setZero();
+  return U0;
 }
 
 Eigen::VectorXd SupportRefit::raw_forces(const RowMatrixX3d& U0, double dp) const {

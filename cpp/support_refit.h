@@ -80,6 +80,8 @@ class SupportRefit {
   double setup_time_ms() const { return setup_ms_; }
 
  private:
+  // U with the rim rows set to 0.
+  RowMatrixX3d rim_zeroed(const RowMatrixX3d& U) const;
   // Raw forces at dU = 0 on the free dofs (3 nf): K U0 - dp a n.
   Eigen::VectorXd raw_forces(const RowMatrixX3d& U0, double dp) const;
   // The free nodes' rows of an N x 3 array as one 3 nf vector (free numbering).

@@ -54,6 +54,13 @@ def net_torque(
     return np.asarray(np.cross(x, f).sum(axis=0), dtype=np.float64).reshape(3)
 
 
+def _finite(a: ArrayLike) -> NDArray[np.float64]:
+    """(N,) float64 of ``a`` with NaN and infinities as 0."""
+    return np.nan_to_num(
+        np.asarray(a, dtype=np.float64).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0
+    )
+
+
 def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
     n = float(np.linalg.norm(v))
     return v / n if n > 0 and np.isfinite(n) else np.zeros(3)
@@ -107,15 +114,10 @@ class PatchFinder:
                 p = -np.einsum("ij,ij->i", self.normals, F) / self.areas
         else:
             p = np.asarray(normal_pressure, dtype=np.float64).reshape(-1)
-        p = np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0)
+        p = _finite(p)
         wp = p
         if weight_pressure is not None and np.size(weight_pressure) == p.size:
-            wp = np.nan_to_num(
-                np.asarray(weight_pressure, dtype=np.float64).reshape(-1),
-                nan=0.0,
-                posinf=0.0,
-                neginf=0.0,
-            )
+            wp = _finite(weight_pressure)
         pos = self.vertices
         if displacements is not None:
             pos = pos + np.nan_to_num(np.asarray(displacements, dtype=np.float64).reshape(-1, 3))
