@@ -43,7 +43,7 @@ class Collector:
         self.rows: list[tuple[int, NDArrayLike, int, NDArrayLike]] = []
         self.reasons: dict[str, int] = {}
 
-    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any, displacements: Any) -> None:
+    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
         for r in msg.degraded_reasons:
             key = r.split("(")[0].strip()
             self.reasons[key] = self.reasons.get(key, 0) + 1

@@ -122,6 +122,41 @@ def test_scene_draws_the_wrench_on_its_line_of_action_and_patch_outlines():
     assert not np.any(np.all(np.isclose(pts, c), axis=2))  # the centre node is inside
 
 
+def test_scene_draws_the_membrane_where_the_frame_says_it_is():
+    """The frame's node_displacements move the mesh and the arrows that end on it (a
+    recording replayed into Foxglove shows the dent, not the untouched dome)."""
+    from bubble_rt.io import protocol
+
+    mesh = coarse_mesh()
+    n = mesh.n_nodes
+    nodes = np.flatnonzero(mesh.interior)[:3]
+    F = np.zeros((n, 3))
+    F[nodes, 2] = -1.0
+    contact = np.zeros(n, bool)
+    contact[nodes] = True
+    u = np.zeros((n, 3))
+    u[nodes] = [0.001, -0.002, -0.004]
+    mesh_msg = protocol.encode_mesh("s", mesh.vertices, mesh.triangles, mesh.boundary)
+    tips = []
+    for disp in (None, u):
+        msg = protocol.encode_force_frame(
+            sensor_id="s",
+            seq=0,
+            frame_index=0,
+            capture_time_ns=1,
+            mesh_id=mesh_msg.mesh_id,
+            net_force=F.sum(axis=0),
+            node_forces=F,
+            normal_pressure=np.zeros(n),
+            contact=contact,
+            node_displacements=disp,
+        )
+        (m,) = [e for e in fx.SceneBuilder().frame(msg, mesh_msg) if e.topic == fx.TOPIC_SCENE]
+        tips.append(arrow_tips(message_class(m.schema_name, m.schema_data).FromString(m.data)))
+    np.testing.assert_allclose(tips[0], mesh.vertices[nodes], atol=1e-6)
+    np.testing.assert_allclose(tips[1], mesh.vertices[nodes] + u[nodes], atol=1e-6)
+
+
 def test_parse_address():
     assert fx.parse_address(None) == ("127.0.0.1", 8765)
     assert fx.parse_address("ws://0.0.0.0:9000") == ("0.0.0.0", 9000)

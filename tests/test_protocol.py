@@ -173,7 +173,7 @@ def test_client_imports_no_estimator():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def _frame_msg(patches=(), net_torque=None):
+def _frame_msg(patches=(), net_torque=None, node_displacements=None):
     n = 4
     return protocol.encode_force_frame(
         sensor_id="s",
@@ -187,6 +187,7 @@ def _frame_msg(patches=(), net_torque=None):
         contact=np.zeros(n, bool),
         patches=patches,
         net_torque=net_torque,
+        node_displacements=node_displacements,
     )
 
 
@@ -202,8 +203,10 @@ def test_wrench_and_patch_geometry_round_trip():
         pressure_centroid=np.array([0.011, 0.001, 0.0199]),
     )
     tau = np.array([0.012, -0.034, 0.0005])
-    f = protocol.decode_force_frame(_frame_msg([patch], tau).SerializeToString())
+    u = np.arange(12.0).reshape(4, 3) * 1e-4
+    f = protocol.decode_force_frame(_frame_msg([patch], tau, u).SerializeToString())
     np.testing.assert_array_equal(f.net_torque, tau)
+    np.testing.assert_array_equal(f.node_displacements, u)
     (p,) = f.patches
     for name in ("centroid", "force", "normal", "torque", "pressure_centroid"):
         np.testing.assert_array_equal(getattr(p, name), getattr(patch, name))
@@ -218,6 +221,7 @@ def test_a_frame_without_the_wrench_fields_decodes_them_as_absent():
     old = Patch(centroid=np.zeros(3), area=1e-4, force=np.zeros(3), nodes=np.array([0]))
     f = protocol.decode_force_frame(_frame_msg([old]).SerializeToString())
     assert f.net_torque is None and f.summary()["net_torque"] is None
+    assert f.node_displacements is None
     assert f.patches[0].normal.size == 0 and f.patches[0].torque.size == 0
     assert f.patches[0].peak_pressure == 0.0
 
@@ -225,4 +229,10 @@ def test_a_frame_without_the_wrench_fields_decodes_them_as_absent():
 def test_a_torque_of_the_wrong_size_is_refused():
     msg = _frame_msg(net_torque=np.zeros(2))
     with pytest.raises(ProtocolError, match="net_torque must hold 3 values"):
+        protocol.decode_force_frame(msg.SerializeToString())
+
+
+def test_displacements_of_the_wrong_size_are_refused():
+    msg = _frame_msg(node_displacements=np.zeros(5))
+    with pytest.raises(ProtocolError, match="node_displacements must hold 3 values per node"):
         protocol.decode_force_frame(msg.SerializeToString())

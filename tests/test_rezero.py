@@ -168,7 +168,7 @@ class Forces:
     def __init__(self) -> None:
         self.fz: dict[int, float] = {}
 
-    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any, disp: Any) -> None:
+    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
         self.fz[int(frame.index)] = float(msg.net_force[2])
 
     def on_status(self, msg: Any, rec: Any) -> None:

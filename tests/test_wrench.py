@@ -145,15 +145,32 @@ def test_net_torque_skips_the_rim_and_non_finite_forces():
     assert np.isfinite(net_torque(mesh.vertices, f, inner)).all()
 
 
+def test_net_torque_takes_the_forces_where_the_membrane_is():
+    mesh = Mesh.preset("coarse")
+    rng = np.random.default_rng(4)
+    f = rng.normal(size=(mesh.n_nodes, 3))
+    u = rng.normal(scale=2e-3, size=(mesh.n_nodes, 3))
+    inner = mesh.interior
+    x = mesh.vertices + u
+    expected = np.cross(x[inner], f[inner]).sum(axis=0)
+    np.testing.assert_allclose(PatchFinder(mesh).net_torque(f, u), expected)
+    assert np.linalg.norm(PatchFinder(mesh).net_torque(f) - expected) > 1e-3
+    u[inner.nonzero()[0][0]] = np.nan  # an unmeasured node counts at its vertex
+    assert np.isfinite(net_torque(mesh.vertices, f, inner, u)).all()
+    with pytest.raises(ValueError, match="displacements"):
+        net_torque(mesh.vertices, f, inner, u[:-1])
+
+
 class ShearingProcessor(FakeProcessor):
-    """The fake's forces plus a shear on its nodes and a reaction on the rim (which the net
-    torque must leave out)."""
+    """The fake's forces plus a shear on its nodes, a dent under them (which moves where the
+    forces act) and a reaction on the rim (which the net torque must leave out)."""
 
     def stage2(self, frame, data):  # type: ignore[no-untyped-def]
         est = super().stage2(frame, data)
         est.node_forces[self.nodes, 0] = 0.3
         est.node_forces[self.nodes, 1] = -0.2 * np.arange(len(self.nodes))
         est.node_forces[self.mesh.boundary[:3]] = [0.05, 0.1, 0.2]
+        est.displacements[self.nodes] = [0.0005, -0.001, -0.004]
         return est
 
 
@@ -175,11 +192,14 @@ def test_frame_torque_is_recomputed_from_the_frame_and_published_mesh_alone():
     inner = np.ones(len(mesh.vertices), bool)
     inner[mesh.boundary] = False
     for f in frames:
-        assert f.net_torque is not None
-        tau = np.cross(mesh.vertices[inner], f.node_forces[inner]).sum(axis=0)
+        assert f.net_torque is not None and f.node_displacements is not None
+        x = mesh.vertices + f.node_displacements  # where the forces act
+        tau = np.cross(x[inner], f.node_forces[inner]).sum(axis=0)
         np.testing.assert_allclose(f.net_torque, tau, rtol=1e-12, atol=1e-15)
-        all_nodes = np.cross(mesh.vertices, f.node_forces).sum(axis=0)
+        all_nodes = np.cross(x, f.node_forces).sum(axis=0)
         assert np.linalg.norm(all_nodes - tau) > 1e-3 * np.linalg.norm(tau)  # the rim matters
+        undented = np.cross(mesh.vertices[inner], f.node_forces[inner]).sum(axis=0)
+        assert np.linalg.norm(undented - tau) > 1e-2 * np.linalg.norm(tau)  # so does the dent
         (p,) = f.patches
         assert p.normal.shape == (3,) and np.linalg.norm(p.normal) == pytest.approx(1.0)
         assert p.peak_pressure == 5000.0  # the fake's contact pressure

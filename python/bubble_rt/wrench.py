@@ -1,9 +1,14 @@
 """The contact wrench and patch geometry a force frame publishes (ForceFrame.net_torque,
 ContactPatch normal / peak_pressure / torque / pressure_centroid).
 
-* Net torque: ``tau = sum_i x_i x f_i`` over the non-rim nodes, ``x_i`` the mesh's vertices
-  (the untouched membrane the daemon publishes as its Mesh), about the mesh origin: a
-  subscriber recomputes it from a frame's node_forces and the Mesh alone.
+* Net torque: ``tau = sum_i x_i x f_i`` over the non-rim nodes about the mesh origin, ``x_i``
+  where the force acts: the mesh's vertex (the untouched membrane the daemon publishes as its
+  Mesh) plus the node's measured displacement (the frame's node_displacements), so a
+  subscriber recomputes it from a frame and the Mesh. Presses land 25-30 mm above the origin
+  with the force pointing nearly through it, so the torque is a near cancellation and the
+  few millimetres of a dent move it: at the untouched vertices the estimate read 0.15-0.25
+  of the physical torque off on unseen simulator seeds, at the dented ones 0.04-0.08
+  (docs/evaluation.md).
 * Patches: connected components of the contact mask over mesh edges. Each carries its
   area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``; the
   weights from the estimate's ``rule_pressure`` when it has one, the linear refit's pressure:
@@ -35,7 +40,10 @@ from bubble_rt.mesh import Mesh
 
 
 def net_torque(
-    vertices: ArrayLike, node_forces: ArrayLike, interior: ArrayLike | None = None
+    vertices: ArrayLike,
+    node_forces: ArrayLike,
+    interior: ArrayLike | None = None,
+    displacements: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
     """(3,) N m: ``sum_i x_i x f_i`` over the ``interior`` nodes (all when None).
 
@@ -43,8 +51,9 @@ def net_torque(
         vertices: N x 3 node positions (m), mesh frame.
         node_forces: N x 3 forces on the nodes (N); non-finite entries count as zero.
         interior: (N,) bool, the non-rim nodes.
+        displacements: N x 3 (m) added to ``vertices`` (non-finite entries count as zero).
     """
-    x = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    x = _positions(vertices, displacements)
     f = np.nan_to_num(np.asarray(node_forces, dtype=np.float64).reshape(-1, 3))
     if f.shape != x.shape:
         raise ValueError(f"node_forces {f.shape} do not match vertices {x.shape}")
@@ -52,6 +61,17 @@ def net_torque(
         keep = np.asarray(interior, dtype=bool).reshape(-1)
         x, f = x[keep], f[keep]
     return np.asarray(np.cross(x, f).sum(axis=0), dtype=np.float64).reshape(3)
+
+
+def _positions(vertices: ArrayLike, displacements: ArrayLike | None) -> NDArray[np.float64]:
+    """N x 3 m: ``vertices`` plus ``displacements`` (None: none; non-finite ones count as 0)."""
+    x = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    if displacements is None:
+        return x
+    u = np.nan_to_num(np.asarray(displacements, dtype=np.float64).reshape(-1, 3))
+    if u.shape != x.shape:
+        raise ValueError(f"displacements {u.shape} do not match vertices {x.shape}")
+    return x + u
 
 
 def _finite(a: ArrayLike) -> NDArray[np.float64]:
@@ -77,9 +97,16 @@ class PatchFinder:
         self.normals = np.asarray(mesh.vertex_normals(), dtype=np.float64)
         self.interior = np.asarray(mesh.interior, dtype=bool)
 
-    def net_torque(self, node_forces: ArrayLike) -> NDArray[np.float64]:
-        """(3,) N m about the mesh origin, over the non-rim nodes at the mesh's vertices."""
-        return net_torque(self.vertices, node_forces, self.interior)
+    def net_torque(
+        self, node_forces: ArrayLike, displacements: ArrayLike | None = None
+    ) -> NDArray[np.float64]:
+        """(3,) N m about the mesh origin, over the non-rim nodes at the mesh's vertices
+        plus ``displacements`` (N x 3 m; None: at the vertices)."""
+        return net_torque(self.vertices, node_forces, self.interior, displacements)
+
+    def net_torque_of(self, estimate: Any) -> NDArray[np.float64]:
+        """:meth:`net_torque` of an estimate: its forces at its displaced nodes."""
+        return self.net_torque(estimate.node_forces, estimate.displacements)
 
     def patches(
         self,
@@ -118,9 +145,7 @@ class PatchFinder:
         wp = p
         if weight_pressure is not None and np.size(weight_pressure) == p.size:
             wp = _finite(weight_pressure)
-        pos = self.vertices
-        if displacements is not None:
-            pos = pos + np.nan_to_num(np.asarray(displacements, dtype=np.float64).reshape(-1, 3))
+        pos = _positions(self.vertices, displacements)
         sub = self.adjacency[idx][:, idx]
         n_comp, labels = connected_components(sub, directed=False)
         owner = self._load_owner(idx, labels, support)

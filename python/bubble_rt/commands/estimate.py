@@ -9,7 +9,7 @@ file is used as given: it must already be in the recording camera's mesh frame).
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
 timings_ms, wrench (6 or null), solver_status, net_torque_mesh (3, N m, mesh frame, about its
-origin: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
+origin, the forces at the displaced nodes: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
 normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
@@ -295,7 +295,7 @@ def _write_frames(
     frames_out = []
     try:
         for frame, e in results:
-            tau_mesh = finder.net_torque(e.node_forces)
+            tau_mesh = finder.net_torque_of(e)
             if bag is not None:
                 bag.write(
                     frame.t,

@@ -70,7 +70,7 @@ class FoxgloveView:
         self._channels: dict[str, Any] = {}
         for spec in channel_specs():
             self._channel(spec)
-        self._slot: LatestSlot[tuple[Any, Any, Any, Any, Any]] = LatestSlot()
+        self._slot: LatestSlot[tuple[Any, Any, Any, Any]] = LatestSlot()
         self._stop = threading.Event()
         self.sent = 0
         self.error = ""
@@ -89,9 +89,8 @@ class FoxgloveView:
         force_msg: Any,
         mesh_msg: Any,
         recorder: Any = None,
-        displacements: Any = None,
     ) -> None:
-        self._slot.put((frame, force_msg, mesh_msg, recorder, displacements))
+        self._slot.put((frame, force_msg, mesh_msg, recorder))
 
     def on_status(self, msg: Any, recorder: Any = None) -> None:
         try:
@@ -113,9 +112,9 @@ class FoxgloveView:
             item = self._slot.get(timeout=0.1)
             if item is None:
                 continue
-            frame, force_msg, mesh_msg, recorder, disp = item
+            frame, force_msg, mesh_msg, recorder = item
             try:
-                self._emit(self.builder.frame(force_msg, mesh_msg, frame, disp), recorder)
+                self._emit(self.builder.frame(force_msg, mesh_msg, frame), recorder)
             except Exception as exc:  # never take the daemon down; report the first fault
                 self.error = self.error or f"{type(exc).__name__}: {exc}"
 

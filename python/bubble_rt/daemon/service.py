@@ -120,7 +120,7 @@ class Daemon:
         #: recording alone determines its forces (a replay reproduces them).
         self._cold_next = False
         #: Extra outputs, e.g. bubble_rt.daemon.foxglove_view.FoxgloveView: on_frame(frame,
-        #: force msg, mesh msg, recorder, displacements), on_status(msg, recorder), close().
+        #: force msg, mesh msg, recorder), on_status(msg, recorder), close().
         self.viewers: list[Any] = []
         self.seq = 0
         self.frames_published = 0
@@ -483,7 +483,8 @@ class Daemon:
             solver_info=est.info,
             valid_node_fraction=float(est.valid_node_fraction),
             degraded_reasons=reasons,
-            net_torque=self._patches.net_torque(forces),
+            net_torque=self._patches.net_torque_of(est),
+            node_displacements=np.nan_to_num(np.asarray(est.displacements, dtype=np.float64)),
         )
         attach_sim_truth(msg, item.frame, proc.mesh)  # simulated sources only
         return msg
@@ -504,7 +505,7 @@ class Daemon:
         if rec is not None:
             rec.write_force(msg)
         for viewer in self.viewers:
-            viewer.on_frame(item.frame, msg, self.mesh_msg, rec, est.displacements)
+            viewer.on_frame(item.frame, msg, self.mesh_msg, rec)
 
     def _send(self, topic: bytes, msg: Any) -> None:
         try:

@@ -30,11 +30,11 @@ at least :data:`UNTOUCHED_N`).
 Wrench and patch geometry (frames whose true net force is at least :data:`WRENCH_MIN_N`, 1 N):
 
 - Torque: ``|tau - tau_gt| / |tau_gt|``, tau the estimate's net torque about the mesh origin
-  (``bubble_rt.wrench``: at the mesh's untouched vertices, as the daemon publishes it), tau_gt
-  the simulator's (its contact forces at the nodes' current positions, the physical torque);
-  the median over frames is reported (``torque_rel_err``). ``torque_rel_err_reference``
-  compares with the truth's forces at their untouched positions instead (the published
-  definition), which separates the force field's error from what the dent's motion moves.
+  (``bubble_rt.wrench``: its forces at its displaced nodes, as the daemon publishes it),
+  tau_gt the simulator's (its contact forces at the nodes' current positions, the physical
+  torque); the median over frames is reported (``torque_rel_err``).
+  ``torque_rel_err_reference`` compares with the truth's forces at their untouched positions
+  instead, which shows how much the dent's motion moves the torque.
   ``torque_lever_err_mm``: the median of ``|tau - tau_gt| / |f_gt|`` (mm), the torque error as
   a point-of-action error; it stays meaningful where the true torque is small (a press near
   the dome's axis), which inflates the relative error.

@@ -269,7 +269,6 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
             e = est.process(frame)
             ms = 1e3 * (time.perf_counter() - ts)
             f_gt = np.asarray(frame.truth.net_force, dtype=float)
-            forces = np.asarray(e.node_forces, dtype=float)
             patches = finder.patches_of(e)
             ps = patch_scores(patches, true_patches[i])
             rec = replace(
@@ -288,7 +287,7 @@ def evaluate_trajectory(task: EvalTask) -> TrajectoryResult:
                     time_ms=ms,
                     truth_converged=bool(getattr(frame.truth, "converged", True)),
                 ),
-                tau_est=[float(x) for x in finder.net_torque(forces)],
+                tau_est=[float(x) for x in finder.net_torque_of(e)],
                 tau_gt=[float(x) for x in frame.truth.net_torque()],
                 tau_gt_reference=[float(x) for x in frame.truth.net_torque(at_reference=True)],
                 centroid_err_mm=ps.centroid_err_mm,

@@ -391,11 +391,9 @@ class SceneBuilder:
         self._mesh_id = ""
         self._mesh: Any = None
 
-    def frame(
-        self, force_msg: Any, mesh_msg: Any, frame: Any = None, displacements: Any = None
-    ) -> list[Encoded]:
+    def frame(self, force_msg: Any, mesh_msg: Any, frame: Any = None) -> list[Encoded]:
         """Scene, net force, true force (sim frames) and image (rate-limited) of one frame;
-        ``displacements`` (N x 3, m) draw the mesh at its measured shape."""
+        the mesh is drawn at its measured shape (the frame's node_displacements, if any)."""
         from bubble_rt.io import protocol
 
         if mesh_msg is not None and mesh_msg.mesh_id != self._mesh_id:
@@ -406,8 +404,8 @@ class SceneBuilder:
         d = protocol.decode_force_frame(force_msg)
         t_ns = int(d.capture_time_ns)
         verts = np.asarray(self._mesh.vertices, dtype=np.float64)
-        if displacements is not None and np.shape(displacements) == verts.shape:
-            verts = verts + np.nan_to_num(np.asarray(displacements, dtype=np.float64))
+        if d.node_displacements is not None and d.node_displacements.shape == verts.shape:
+            verts = verts + np.nan_to_num(d.node_displacements)
         scene = scene_update(
             verts,
             self._mesh.triangles,

@@ -207,6 +207,9 @@ class ForceFrameData:
     #: Net torque (3,) N m about the mesh origin (ForceFrame.net_torque); None in a frame
     #: from before the field existed.
     net_torque: NDArray[np.float64] | None = None
+    #: Node displacements N x 3 m from the Mesh's vertices (ForceFrame.node_displacements);
+    #: None in a frame from before the field existed.
+    node_displacements: NDArray[np.float64] | None = None
 
     @property
     def has_truth(self) -> bool:
@@ -284,9 +287,11 @@ def encode_force_frame(
     valid_node_fraction: float = 1.0,
     degraded_reasons: Sequence[str] = (),
     net_torque: NDArray | None = None,
+    node_displacements: NDArray | None = None,
 ) -> Any:
     """Build a ForceFrame; publish_time_ns and latency are set by :func:`stamp_publish`.
-    ``net_torque`` (3,) N m (bubble_rt.wrench.net_torque); None leaves the field empty."""
+    ``net_torque`` (3,) N m (bubble_rt.wrench.net_torque) and ``node_displacements`` N x 3 m
+    (the positions it was taken at, less the Mesh's vertices); None leaves a field empty."""
     msg = pb.ForceFrame(
         protocol_version=PROTOCOL_VERSION,
         sensor_id=sensor_id,
@@ -305,6 +310,8 @@ def encode_force_frame(
     msg.normal_pressure.extend(_packed(normal_pressure))
     if net_torque is not None:
         msg.net_torque.extend(_packed(net_torque))
+    if node_displacements is not None:
+        msg.node_displacements.extend(_packed(node_displacements))
     for p in patches:
         peak = float(p.peak_pressure)
         pm = msg.patches.add(area=float(p.area), peak_pressure=peak if np.isfinite(peak) else 0.0)
@@ -365,6 +372,12 @@ def decode_force_frame(payload: bytes | Any) -> ForceFrameData:
         for p in msg.patches
     ]
     torque = _vec3_or_empty(msg.net_torque, "ForceFrame.net_torque")
+    disp = np.asarray(msg.node_displacements, dtype=np.float64)
+    if disp.size not in (0, nf.size):
+        raise ProtocolError(
+            f"ForceFrame.node_displacements must hold 3 values per node ({nf.size}), "
+            f"got {disp.size}"
+        )
     return ForceFrameData(
         sensor_id=msg.sensor_id,
         seq=msg.seq,
@@ -387,6 +400,7 @@ def decode_force_frame(payload: bytes | Any) -> ForceFrameData:
         degraded=msg.degraded,
         degraded_reasons=list(msg.degraded_reasons),
         net_torque=torque if torque.size else None,
+        node_displacements=disp.reshape(-1, 3) if disp.size else None,
         **_decode_sim_truth(msg),
     )
 
