@@ -471,3 +471,57 @@ def test_nonlinear_refit_core_rejects_bad_input():
         refit(U, float("nan"), s, 2)
     with pytest.raises(ValueError, match="iterations"):
         refit(U, 0.0, s, -1)
+
+
+def _bumps(mesh: Mesh, bumps: list[tuple[float, float, float]], width: float = 0.004):
+    """(N,) Pa: Gaussian bumps (x, y, height) over the mesh's xy."""
+    xy = mesh.vertices[:, :2]
+    p = np.zeros(mesh.n_nodes)
+    for x, y, h in bumps:
+        p += h * np.exp(-((xy - [x, y]) ** 2).sum(axis=1) / (2 * width**2))
+    return p
+
+
+def test_two_pins_apart_are_two_loads_each_with_its_own_peak():
+    from bubble_rt.estimation.estimator import load_regions
+
+    mesh = Mesh.preset("medium")
+    pd = _bumps(mesh, [(-0.0125, 0.0, 40e3), (0.0125, 0.0, 15e3)])  # the second at 0.37
+    support = mesh.interior & (pd > 100.0)
+    force = pd * mesh.lumped_areas()
+    peak, label = load_regions(pd, support, mesh.adjacency(), force, 0.5, 0.25)
+    # each pin's core (where the rule can mark contact) is one region with its own peak
+    left = support & (mesh.vertices[:, 0] < 0) & (pd >= 0.5 * 40e3)
+    right = support & (mesh.vertices[:, 0] > 0) & (pd >= 0.5 * peak)
+    assert left.sum() >= 3 and right.sum() >= 3
+    assert np.unique(label[left]).size == 1 and np.unique(label[right]).size == 1
+    assert label[left][0] != label[right][0]
+    assert peak[right].max() == pytest.approx(pd[mesh.vertices[:, 0] > 0].max())
+    # under one support-wide peak the second pin would mark no contact
+    assert not (pd[right] >= 0.5 * 40e3).any()
+    assert np.isinf(peak[~support]).all() and (label[~support] == -1).all()
+
+
+def test_a_faint_second_bump_stays_under_the_main_peak():
+    from bubble_rt.estimation.estimator import load_regions
+
+    mesh = Mesh.preset("medium")
+    pd = _bumps(mesh, [(-0.0125, 0.0, 40e3), (0.0125, 0.0, 4e3)])  # a tenth of the force
+    support = mesh.interior & (pd > 100.0)
+    force = pd * mesh.lumped_areas()
+    peak, label = load_regions(pd, support, mesh.adjacency(), force, 0.5, 0.25)
+    assert np.unique(label[support]).size == 1
+    assert np.allclose(peak[support], pd[support].max())
+
+
+def test_the_fragments_of_one_dent_are_one_load():
+    # A flat face loads its edges and corners: four bumps joined above half their peak.
+    from bubble_rt.estimation.estimator import load_regions
+
+    mesh = Mesh.preset("medium")
+    d = 0.004
+    pd = _bumps(mesh, [(sx * d, sy * d, 30e3) for sx in (-1, 1) for sy in (-1, 1)], 0.003)
+    support = mesh.interior & (pd > 100.0)
+    force = pd * mesh.lumped_areas()
+    _, label = load_regions(pd, support, mesh.adjacency(), force, 0.5, 0.25)
+    assert np.unique(label[support]).size == 1

@@ -204,3 +204,20 @@ def test_frame_torque_is_recomputed_from_the_frame_and_published_mesh_alone():
         assert p.normal.shape == (3,) and np.linalg.norm(p.normal) == pytest.approx(1.0)
         assert p.peak_pressure == 5000.0  # the fake's contact pressure
         assert p.torque.shape == (3,) and p.pressure_centroid.shape == (3,)
+
+
+def test_contact_nodes_of_one_load_region_are_one_patch():
+    mesh = Mesh.preset("coarse")
+    pf = PatchFinder(mesh)
+    inner = np.flatnonzero(mesh.interior)
+    a, b = inner[0], inner[-1]  # far apart: two components without labels
+    contact = np.zeros(mesh.n_nodes, bool)
+    contact[[a, b]] = True
+    forces = np.zeros((mesh.n_nodes, 3))
+    forces[[a, b], 2] = -1.0
+    assert len(pf.patches(contact, forces)) == 2
+    label = np.full(mesh.n_nodes, -1)
+    label[[a, b]] = 7
+    (p,) = pf.patches(contact, forces, label=label)
+    assert sorted(p.nodes.tolist()) == sorted([a, b])
+    np.testing.assert_allclose(p.force, [0.0, 0.0, -2.0])

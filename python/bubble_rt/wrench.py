@@ -9,7 +9,9 @@ ContactPatch normal / peak_pressure / torque / pressure_centroid).
   few millimetres of a dent move it: at the untouched vertices the estimate read 0.15-0.25
   of the physical torque off on unseen simulator seeds, at the dented ones 0.04-0.08
   (docs/evaluation.md).
-* Patches: connected components of the contact mask over mesh edges. Each carries its
+* Patches: the estimator's load regions (``Estimate.patch_label``: one load whose contact
+  the rule keeps in pieces, the edges and corners of a flat face, is one patch; two pins are
+  two), else the connected components of the contact mask over mesh edges. Each carries its
   area-weighted centroid and its normal-force-weighted centroid (``pressure_centroid``; the
   weights from the estimate's ``rule_pressure`` when it has one, the linear refit's pressure:
   the nonlinear forces gather at a dent's edge) over its contact nodes at their current
@@ -116,6 +118,7 @@ class PatchFinder:
         normal_pressure: ArrayLike | None = None,
         support: ArrayLike | None = None,
         weight_pressure: ArrayLike | None = None,
+        label: ArrayLike | None = None,
     ) -> list[protocol.Patch]:
         """Patches of one frame, largest force first.
 
@@ -129,6 +132,8 @@ class PatchFinder:
                 or empty: each patch carries its contact nodes' forces only.
             weight_pressure: (N,) Pa, the pressure whose positive part times the lumped area
                 weights ``pressure_centroid``; None or empty: the normal pressure.
+            label: (N,) int, the patch of each contact node (``Estimate.patch_label``); None
+                or empty: the contact's connected components.
         """
         from scipy.sparse.csgraph import connected_components
 
@@ -146,8 +151,12 @@ class PatchFinder:
         if weight_pressure is not None and np.size(weight_pressure) == p.size:
             wp = _finite(weight_pressure)
         pos = _positions(self.vertices, displacements)
-        sub = self.adjacency[idx][:, idx]
-        n_comp, labels = connected_components(sub, directed=False)
+        if label is not None and np.size(label) == len(self.vertices):
+            _, labels = np.unique(np.asarray(label)[idx], return_inverse=True)
+            n_comp = int(labels.max()) + 1
+        else:
+            sub = self.adjacency[idx][:, idx]
+            n_comp, labels = connected_components(sub, directed=False)
         owner = self._load_owner(idx, labels, support)
         out = []
         for c in range(n_comp):
@@ -189,6 +198,7 @@ class PatchFinder:
             estimate.normal_pressure,
             estimate.support,
             weight_pressure=getattr(estimate, "rule_pressure", None),
+            label=getattr(estimate, "patch_label", None),
         )
 
     def _load_owner(

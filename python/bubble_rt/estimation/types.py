@@ -36,6 +36,9 @@ class Estimate:
             contact rule thresholds and which weights a patch's ``pressure_centroid`` (empty:
             ``normal_pressure`` is that pressure). The nonlinear refit's forces gather at a
             dent's edge, so their pressure places the load's centre worse (docs/evaluation.md).
+        patch_label: (N,) int, the contact rule's load region of each contact node (-1
+            elsewhere): contact nodes with one label are one patch, connected or not (empty:
+            patches are the contact's connected components).
     """
 
     node_forces: NDArray[np.float64]
@@ -51,3 +54,4 @@ class Estimate:
     degraded_reasons: list[str] = field(default_factory=list)
     pressure_delta_pa: float = 0.0
     rule_pressure: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    patch_label: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
