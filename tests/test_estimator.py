@@ -525,3 +525,94 @@ def test_the_fragments_of_one_dent_are_one_load():
     force = pd * mesh.lumped_areas()
     _, label = load_regions(pd, support, mesh.adjacency(), force, 0.5, 0.25)
     assert np.unique(label[support]).size == 1
+
+
+def _load_regions_reference(pd, support, adjacency, force, k_peak, k_load):  # type: ignore[no-untyped-def]
+    """The Python statement of ``load_regions`` (cpp/load_regions.h) the C++ is tested against."""
+
+    peak_of = np.full(pd.size, np.inf)
+    label = np.full(pd.size, -1, np.int64)
+    idx = np.flatnonzero(support)
+    order = idx[np.argsort(-pd[idx], kind="stable")].tolist()
+    parent = list(range(pd.size))
+    level = pd.tolist()
+    f = force.tolist()
+    seen = [False] * pd.size
+    peak: dict[int, float] = {}
+    members: dict[int, list[int]] = {}
+    #: a region's core: its nodes at k_peak of its peak (few), and their force
+    core: dict[int, list[int]] = {}
+    core_force: dict[int, float] = {}
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    indptr, indices = adjacency.indptr.tolist(), adjacency.indices.tolist()
+    for i in order:
+        seen[i] = True
+        peak[i], members[i], core[i], core_force[i] = level[i], [i], [i], f[i]
+        for j in indices[indptr[i] : indptr[i + 1]]:
+            if not seen[j]:
+                continue
+            ri, rj = find(i), find(j)
+            if ri == rj:
+                continue
+            lo, hi = (ri, rj) if peak[ri] < peak[rj] else (rj, ri)
+            if level[i] < k_peak * peak[lo] and core_force[lo] >= k_load * core_force[hi]:
+                for node in members[lo]:
+                    if label[node] < 0:
+                        peak_of[node], label[node] = peak[lo], lo
+            # lo's nodes at k_peak of hi's peak join hi's core
+            joining = [n for n in core.pop(lo) if level[n] >= k_peak * peak[hi]]
+            core[hi].extend(joining)
+            core_force[hi] += sum(f[n] for n in joining)
+            del core_force[lo]
+            parent[lo] = hi
+            small, big = sorted((members.pop(lo), members[hi]), key=len)
+            big.extend(small)
+            members[hi] = big
+    for node in order:
+        if label[node] < 0:
+            root = find(node)
+            peak_of[node], label[node] = peak[root], root
+    return peak_of, label
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_load_regions_match_the_python_statement(seed):
+    from bubble_rt.estimation.estimator import load_regions
+
+    mesh = Mesh.preset("medium")
+    rng = np.random.default_rng(seed)
+    bumps = [(*rng.uniform(-0.02, 0.02, 2), rng.uniform(2e3, 40e3)) for _ in range(4)]
+    pd = _bumps(mesh, bumps) + rng.normal(0.0, 500.0, mesh.n_nodes)  # many small maxima
+    support = mesh.interior & (rng.random(mesh.n_nodes) < 0.9)
+    force = np.where(pd > 1e3, pd * mesh.lumped_areas(), 0.0)
+    adjacency = mesh.adjacency()
+    for k_load in (0.0, 0.25, 1.0):
+        peak, label = load_regions(pd, support, adjacency, force, 0.5, k_load)
+        ref_peak, ref_label = _load_regions_reference(pd, support, adjacency, force, 0.5, k_load)
+        np.testing.assert_array_equal(peak, ref_peak)
+        np.testing.assert_array_equal(label, ref_label)
+    assert np.unique(label[support]).size >= 2  # the case exercises separate loads
+
+
+def test_load_regions_refuse_inconsistent_input():
+    from bubble_rt import _core
+
+    mesh = Mesh.preset("coarse")
+    adj = mesh.adjacency()
+    n = mesh.n_nodes
+    ptr, idx = adj.indptr.astype(np.int32), adj.indices.astype(np.int32)
+    ok = dict(pd=np.zeros(n), support=np.ones(n, bool), force=np.zeros(n))
+    with pytest.raises(ValueError, match="N entries"):
+        _core._load_regions(ok["pd"], ok["support"][:-1], ptr, idx, ok["force"], 0.5, 0.25)
+    with pytest.raises(ValueError, match="N \\+ 1"):
+        _core._load_regions(ok["pd"], ok["support"], ptr[:-1], idx, ok["force"], 0.5, 0.25)
+    bad = idx.copy()
+    bad[0] = n
+    with pytest.raises(ValueError, match="out of range"):
+        _core._load_regions(ok["pd"], ok["support"], ptr, bad, ok["force"], 0.5, 0.25)

@@ -12,6 +12,7 @@ void bind_refit(py::module_& m);
 void bind_deformation(py::module_& m);
 void bind_sim(py::module_& m);
 void bind_render(py::module_& m);
+void bind_contact(py::module_& m);
 
 PYBIND11_MODULE(_core, m) {
   m.doc() = "bubble_rt C++ core (private: use the bubble_rt Python API)";
@@ -25,4 +26,5 @@ PYBIND11_MODULE(_core, m) {
   bind_deformation(m);
   bind_sim(m);
   bind_render(m);
+  bind_contact(m);
 }

@@ -395,6 +395,8 @@ def load_regions(
     of them); the bumps around one dent, which split it into fragments under a single
     support-wide peak, meet near theirs or carry little force.
 
+    Computed in C++ (cpp/load_regions.h); tests/test_estimator.py holds a Python reference.
+
     Args:
         pd: (N,) Pa, disc-averaged normal pressure.
         support: (N,) bool, the nodes that carry force.
@@ -405,52 +407,15 @@ def load_regions(
     Returns:
         ((N,) peak in Pa, inf off the support; (N,) region label, -1 off the support).
     """
-    peak_of = np.full(pd.size, np.inf)
-    label = np.full(pd.size, -1, np.int64)
-    idx = np.flatnonzero(support)
-    order = idx[np.argsort(-pd[idx], kind="stable")].tolist()
-    parent = list(range(pd.size))
-    level = pd.tolist()
-    f = force.tolist()
-    seen = [False] * pd.size
-    peak: dict[int, float] = {}
-    members: dict[int, list[int]] = {}
-    #: a region's core: its nodes at k_peak of its peak (few), and their force
-    core: dict[int, list[int]] = {}
-    core_force: dict[int, float] = {}
+    from bubble_rt import _core
 
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    indptr, indices = adjacency.indptr.tolist(), adjacency.indices.tolist()
-    for i in order:
-        seen[i] = True
-        peak[i], members[i], core[i], core_force[i] = level[i], [i], [i], f[i]
-        for j in indices[indptr[i] : indptr[i + 1]]:
-            if not seen[j]:
-                continue
-            ri, rj = find(i), find(j)
-            if ri == rj:
-                continue
-            lo, hi = (ri, rj) if peak[ri] < peak[rj] else (rj, ri)
-            if level[i] < k_peak * peak[lo] and core_force[lo] >= k_load * core_force[hi]:
-                for node in members[lo]:
-                    if label[node] < 0:
-                        peak_of[node], label[node] = peak[lo], lo
-            # lo's nodes at k_peak of hi's peak join hi's core
-            joining = [n for n in core.pop(lo) if level[n] >= k_peak * peak[hi]]
-            core[hi].extend(joining)
-            core_force[hi] += sum(f[n] for n in joining)
-            del core_force[lo]
-            parent[lo] = hi
-            small, big = sorted((members.pop(lo), members[hi]), key=len)
-            big.extend(small)
-            members[hi] = big
-    for node in order:
-        if label[node] < 0:
-            root = find(node)
-            peak_of[node], label[node] = peak[root], root
-    return peak_of, label
+    peak, label = _core._load_regions(
+        np.ascontiguousarray(pd, dtype=np.float64),
+        np.ascontiguousarray(support, dtype=bool),
+        np.ascontiguousarray(adjacency.indptr, dtype=np.int32),
+        np.ascontiguousarray(adjacency.indices, dtype=np.int32),
+        np.ascontiguousarray(force, dtype=np.float64),
+        float(k_peak),
+        float(k_load),
+    )
+    return np.asarray(peak, dtype=np.float64), np.asarray(label, dtype=np.int64)

@@ -1,0 +1,38 @@
+// Private binding of the contact rule's load regions (public API:
+// bubble_rt.estimation.estimator.load_regions).
+#include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include "load_regions.h"
+#include "numpy_views.h"
+
+namespace py = pybind11;
+using bubble::bindings::ArrB;
+using bubble::bindings::ArrD;
+using bubble::bindings::ArrI;
+
+void bind_contact(py::module_& m) {
+  m.def(
+      "_load_regions",
+      [](const ArrD& pd, const ArrB& support, const ArrI& indptr, const ArrI& indices,
+         const ArrD& force, double k_peak, double k_load) {
+        auto p = bubble::bindings::map_n(pd, "pd");
+        auto f = bubble::bindings::map_n(force, "force");
+        bubble::require(support.ndim() == 1 && indptr.ndim() == 1 && indices.ndim() == 1,
+                        "support, indptr and indices must be 1-D");
+        Eigen::Map<const Eigen::Matrix<bool, Eigen::Dynamic, 1>> s(support.data(),
+                                                                   support.shape(0));
+        Eigen::Map<const Eigen::VectorXi> ptr(indptr.data(), indptr.shape(0));
+        Eigen::Map<const Eigen::VectorXi> idx(indices.data(), indices.shape(0));
+        bubble::LoadRegions r;
+        {
+          py::gil_scoped_release release;
+          r = bubble::load_regions(p, s, ptr, idx, f, k_peak, k_load);
+        }
+        return py::make_tuple(py::cast(std::move(r.peak)), py::cast(std::move(r.label)));
+      },
+      py::arg("pd").noconvert(), py::arg("support").noconvert(), py::arg("indptr").noconvert(),
+      py::arg("indices").noconvert(), py::arg("force").noconvert(), py::arg("k_peak"),
+      py::arg("k_load"));
+}
