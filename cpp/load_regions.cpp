@@ -32,6 +32,7 @@ class Regions {
     members_[i] = {i};
     core_[i] = {i};
     core_force_[i] = force_(i);
+    strongest_ = std::max(strongest_, force_(i));
   }
 
   int find(int a) {
@@ -44,6 +45,7 @@ class Regions {
 
   double peak(int root) const { return pd_(root); }  // a root is its region's first node
   double core_force(int root) const { return core_force_[root]; }
+  double strongest() const { return strongest_; }  // the largest core force so far
   const std::vector<int>& members(int root) const { return members_[root]; }
 
   // lo joins hi: lo's core nodes at k_peak of hi's peak join hi's core.
@@ -54,6 +56,7 @@ class Regions {
         core_force_[hi] += force_(n);
       }
     }
+    strongest_ = std::max(strongest_, core_force_[hi]);
     core_[lo].clear();
     if (members_[lo].size() > members_[hi].size()) std::swap(members_[lo], members_[hi]);
     members_[hi].insert(members_[hi].end(), members_[lo].begin(), members_[lo].end());
@@ -68,6 +71,7 @@ class Regions {
   std::vector<int> parent_;
   std::vector<std::vector<int>> members_, core_;
   std::vector<double> core_force_;
+  double strongest_ = 0.0;
 };
 
 // The support's nodes, highest pd first (ties in index order).
@@ -110,7 +114,7 @@ LoadRegions load_regions(const Eigen::Ref<const Eigen::VectorXd>& pd,
       if (lo == hi) continue;
       if (regions.peak(lo) >= regions.peak(hi)) std::swap(lo, hi);
       const bool apart = pd(i) < k_peak * regions.peak(lo) &&
-                         regions.core_force(lo) >= k_load * regions.core_force(hi);
+                         regions.core_force(lo) >= k_load * regions.strongest();
       if (apart) {
         for (int node : regions.members(lo)) {
           if (out.label(node) >= 0) continue;

@@ -3,10 +3,10 @@
 // The support's nodes join from the highest disc pressure pd down, a union-find over the mesh
 // edges within the support. Where two regions meet at a node below k_peak times the lower
 // region's peak, the lower one is a load of its own (its nodes keep its peak and its label)
-// when its core force (its nodes at k_peak of its peak) is at least k_load times the higher
-// region's. Otherwise, and where they meet above that level, they are one load, measured
-// against the higher peak. Two pins pressing apart meet far below either peak; the bumps
-// around one dent meet near theirs or carry little force.
+// when its core force (its nodes at k_peak of its peak) is at least k_load times the strongest
+// core force so far (the main load's, by then). Otherwise, and where they meet above that level,
+// they are one load, measured against the higher peak. Two pins pressing apart meet far below
+// either peak; the bumps around one dent meet near theirs or carry little force.
 #pragma once
 
 #include <Eigen/Core>

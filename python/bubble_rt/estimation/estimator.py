@@ -80,8 +80,8 @@ class EstimatorConfig:
             region over the support (-).
         k_load: a support region that the disc pressure separates from a higher one (through
             nodes below ``k_peak`` times its own peak) is a load of its own when its core (its
-            nodes at ``k_peak`` of its peak) carries at least this fraction of the higher
-            region's core force; otherwise it is measured against the higher peak (-). Chosen
+            nodes at ``k_peak`` of its peak) carries at least this fraction of the strongest
+            load's core force; otherwise it is measured against the higher peak (-). Chosen
             on the calibration seeds (docs/evaluation.md, "Loads of their own").
         support_tol: support rule (-): a node carries force when its multiplier is within this
             fraction of its bound, ``||y_i|| >= (1 - support_tol) k_f`` (``support``).
@@ -389,7 +389,8 @@ def load_regions(
     mesh edges within the support). Where two regions meet at a node below ``k_peak`` times
     the lower region's peak, the two loads are apart in the contact rule's eyes; the lower one
     stays a load of its own (its nodes keep its peak and its label) when its core force (its
-    nodes at ``k_peak`` of its peak) is at least ``k_load`` times the higher region's.
+    nodes at ``k_peak`` of its peak) is at least ``k_load`` times the strongest core force so
+    far (by then the main load's: two small regions meeting far from it stay under it).
     Otherwise, and where they meet above that level, they are one load: the rule compares
     with the higher peak. Two pins pressing apart meet far below either peak (a few per cent
     of them); the bumps around one dent, which split it into fragments under a single
