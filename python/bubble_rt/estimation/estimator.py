@@ -403,7 +403,8 @@ def load_regions(
         support: (N,) bool, the nodes that carry force.
         adjacency: N x N mesh edge adjacency (CSR).
         force: (N,) N, each node's normal force where it passes the paper's threshold, else 0.
-        k_peak, k_load: the rule's fractions (EstimatorConfig).
+        k_peak: the contact threshold's fraction of the load's peak (EstimatorConfig).
+        k_load: the core force fraction that makes a load of its own (EstimatorConfig).
 
     Returns:
         ((N,) peak in Pa, inf off the support; (N,) region label, -1 off the support).
