@@ -9,8 +9,9 @@ file is used as given: it must already be in the recording camera's mesh frame).
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
 (3, N, camera frame), net_force_mesh (3, N, mesh frame), contact_nodes, valid_node_fraction,
 timings_ms, wrench (6 or null), solver_status, net_torque_mesh (3, N m, mesh frame, about its
-origin, the forces at the displaced nodes: bubble_rt.wrench), patches [{centroid, pressure_centroid (m), area (m^2), force (N),
-normal, peak_pressure (Pa), torque (N m, about centroid), nodes}] (mesh frame)}]}.
+origin, the forces at the displaced nodes: bubble_rt.wrench), patches [{centroid,
+pressure_centroid (m), area (m^2), force (N), normal, peak_pressure (Pa), torque (N m, about
+centroid), nodes}] (mesh frame)}]}.
 
 RECORDING may be a ROS 2 bag (``--topics``, ``--depth-unit`` for it); ``--bag OUT`` also
 writes the results as a rosbag2 (MCAP): geometry_msgs/WrenchStamped and sensor_msgs/PointCloud2
