@@ -155,6 +155,11 @@ void BlockLDLT::factorize(const SparseMatrix& M) {
 
 long BlockLDLT::block_count() const { return static_cast<long>(structure_->rowblk.size()); }
 
+double BlockLDLT::memory_bytes() const {
+  return static_cast<double>(sizeof(double)) *
+         static_cast<double>(vals_.size() + ldiag_.size() + dinv_.size() + w_.size());
+}
+
 void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
   const Structure& s = *structure_;
   const int nb = s.nb;

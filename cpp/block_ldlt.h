@@ -33,6 +33,8 @@ class BlockLDLT {
   // x = M^{-1} b. x and b may not alias.
   void solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const;
   long block_count() const;
+  // Bytes held by this factorization's numbers (the shared structure not counted).
+  double memory_bytes() const;
   const std::shared_ptr<Structure>& structure() const { return structure_; }
 
  private:

@@ -17,7 +17,12 @@ double ms_since(Clock::time_point t0) {
 }
 // rho moves on a grid of quarter decades so that factorizations can be cached and reused.
 constexpr double kRhoGridPerDecade = 4.0;
-constexpr int kMaxCachedFactors = 12;
+// Every rho a run visits stays factored, within a memory budget: untouched frames swing rho
+// over a decade or more with the noise, contacts take it down several more, and on the demo
+// scene a cache of 12 factors refactored on 3-4 % of frames (9 ms each at 390 nodes, 25 ms
+// at 749), the slowest solves of the run.
+constexpr double kFactorCacheBytes = 64e6;
+constexpr int kMinCachedFactors = 12;
 // Before any solution exists, the solution's force scale is guessed from the raw nodal forces
 // (measured: about 1e-3 of them on untouched frames, 1e-1 in firm contact); later it is
 // floored so that an all-zero solution cannot send rho to infinity.
@@ -222,7 +227,11 @@ double GroupLassoSolver::rho_of(int idx) const { return std::pow(10.0, idx / kRh
 const BlockLDLT& GroupLassoSolver::factor(int idx, int* count) {
   auto it = factors_.find(idx);
   if (it != factors_.end()) return *it->second;
-  if (static_cast<int>(factors_.size()) >= kMaxCachedFactors) {
+  const double factor_bytes = factors_.empty() ? 0.0 : factors_.begin()->second->memory_bytes();
+  const int max_factors = std::max(
+      kMinCachedFactors,
+      factor_bytes > 0 ? static_cast<int>(kFactorCacheBytes / factor_bytes) : kMinCachedFactors);
+  if (static_cast<int>(factors_.size()) >= max_factors) {
     // Drop the cached factor farthest from the requested rho.
     auto far = factors_.begin();
     if (std::abs(factors_.rbegin()->first - idx) > std::abs(far->first - idx))

@@ -464,6 +464,29 @@ def test_contact_made_and_released_between_frames_stays_fast(name):
         assert res.info.iterations <= 120, (depth, seed, res.info.iterations)
 
 
+def test_every_rho_a_run_visits_stays_factored():
+    # Untouched frames swing rho with their noise, contacts take it down by decades: this
+    # sequence ends its solves at 11 rho values and passes through more inside them. Played
+    # twice, the second pass must factor nothing (a 12-factor cache refactored 3 of its 12
+    # frames, each a full numeric factorization: the slowest solves of a daemon run).
+    model = _model("coarse")
+    s = GroupLassoSolver(model, K_F, K_U)
+    frames = [
+        synthetic_field(model.mesh, depth=depth, noise=noise, seed=k)
+        for k, (depth, noise) in enumerate(
+            [(0.0, 1e-5), (0.0, 1e-3), (16e-3, 1e-4), (0.0, 3e-5), (0.5e-3, 1e-4), (0.0, 3e-4)]
+            + [(4e-3, 1e-5), (0.0, 1e-4), (1e-3, 3e-4), (8e-3, 1e-3), (0.0, 1e-5), (2e-3, 1e-5)]
+        )
+    ]
+    first = [s.solve_frame(U, dp).info for U, dp in frames]
+    assert len({round(4 * np.log10(i.rho)) for i in first}) >= 10
+    assert sum(i.factorizations for i in first) >= 9
+    again = [s.solve_frame(U, dp).info for U, dp in frames]
+    assert all(i.status == "solved" for i in first + again)
+    assert [i.factorizations for i in again] == [0] * len(frames)
+    assert all(i.setup_time_ms == 0.0 for i in again)
+
+
 def test_reported_certificate_belongs_to_the_returned_displacements():
     # A x is carried along the iterations, checks come early when the gap's rate predicts
     # certification, and factors at a new rho reuse the first one's symbolic analysis: the

@@ -117,6 +117,8 @@ class SolverInfo:
         setup_time_ms: factorization time spent inside this solve (0 when rho's factor was
             cached; the first solve factors at the data-driven rho).
         solve_time_ms: time of this solve in C++.
+        factorizations: factorizations computed during this solve (0 when every rho it used
+            was cached; the cache keeps every rho a run visits, within 64 MB).
     """
 
     status: Status
@@ -128,6 +130,7 @@ class SolverInfo:
     rho: float = 0.0
     setup_time_ms: float = 0.0
     solve_time_ms: float = 0.0
+    factorizations: int = 0
 
     @classmethod
     def _from_core(cls, i) -> SolverInfo:  # noqa: ANN001
@@ -141,6 +144,7 @@ class SolverInfo:
             rho=float(i.rho),
             setup_time_ms=float(i.setup_time_ms),
             solve_time_ms=float(i.solve_time_ms),
+            factorizations=int(i.factorizations),
         )
 
 
