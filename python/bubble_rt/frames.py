@@ -103,10 +103,7 @@ class Frame:
                     "depth",
                 )
             d = d.astype(np.float32, copy=False)
-            # NaN compares False: all-NaN is all-invalid too. A strided sample settles a live
-            # frame at once; only a frame whose sample is all invalid is scanned whole (this
-            # runs for every frame, and again on every dataclasses.replace of one).
-            if not (np.any(d[::8, ::8] > 0) or np.any(d > 0)):
+            if not np.any(d > 0):  # NaN compares False: all-NaN is all-invalid too
                 raise FrameError("depth has no valid pixel (all zero, negative or NaN)", "depth")
             self.depth = d
         if self.rgb is not None and self.depth is not None:
