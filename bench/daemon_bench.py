@@ -79,6 +79,7 @@ def run_one(
     proc = subprocess.Popen(cmd, env=env, stderr=log, text=True)
     lat: list[float] = []
     stages: dict[str, list[float]] = {}
+    per_frame: list[tuple[float, dict[str, float], int]] = []
     #: Frames never published: gaps in frame_index, seen from outside (with the timings of the
     #: frames published either side of each gap).
     missing = 0
@@ -127,6 +128,7 @@ def run_one(
                 degraded += f.degraded
                 for k, v in f.timings_ms.items():
                     stages.setdefault(k, []).append(v)
+                per_frame.append((f.latency_ms, dict(f.timings_ms), f.solver_iterations))
                 if time.monotonic() >= end:
                     break
             elapsed = time.monotonic() - t0
@@ -149,6 +151,12 @@ def run_one(
             shutdown_s = float("nan")
         log.close()
     a = np.asarray(lat)
+    # What the slowest 1 % of frames (latency >= p99) spent their time on, against the median.
+    cut = float(np.percentile(a, 99))
+    tail = [(t, it) for lat_ms, t, it in per_frame if lat_ms >= cut]
+    tail_stages = {
+        k: round(float(np.median([t.get(k, 0.0) for t, _ in tail])), 2) for k in sorted(stages)
+    }
     return {
         "mesh": mesh,
         "nodes": mesh_data.n_nodes,
@@ -166,6 +174,10 @@ def run_one(
         "latency_p99_ms": round(float(np.percentile(a, 99)), 1),
         "latency_max_ms": round(float(a.max()), 1),
         "stage_p50_ms": {k: round(float(np.median(v)), 2) for k, v in sorted(stages.items())},
+        "tail_frames": len(tail),
+        "tail_stage_p50_ms": tail_stages,
+        "tail_iterations": sorted(int(it) for _, it in tail),
+        "iterations_p50": float(np.median([it for _, _, it in per_frame])),
         "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1),
         "shutdown_s": round(shutdown_s, 2),
@@ -203,6 +215,12 @@ def main() -> int:
                 flush=True,
             )
             print(f"         stage medians (ms): {r['stage_p50_ms']}", flush=True)
+            print(
+                f"         the {r['tail_frames']} frames at or over p99: stage medians (ms)"
+                f" {r['tail_stage_p50_ms']}, solver iterations {r['tail_iterations']}"
+                f" (all frames' median {r['iterations_p50']:g})",
+                flush=True,
+            )
             print(f"         load average (1 min) at the end: {r['load']:.2f}", flush=True)
             if r["missing_indices"]:
                 print(
