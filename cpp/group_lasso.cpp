@@ -227,11 +227,12 @@ double GroupLassoSolver::rho_of(int idx) const { return std::pow(10.0, idx / kRh
 const BlockLDLT& GroupLassoSolver::factor(int idx, int* count) {
   auto it = factors_.find(idx);
   if (it != factors_.end()) return *it->second;
-  const double factor_bytes = factors_.empty() ? 0.0 : factors_.begin()->second->memory_bytes();
-  const int max_factors = std::max(
-      kMinCachedFactors,
-      factor_bytes > 0 ? static_cast<int>(kFactorCacheBytes / factor_bytes) : kMinCachedFactors);
-  if (static_cast<int>(factors_.size()) >= max_factors) {
+  // Every factor of one solver has the same size.
+  const auto budget = [this] {
+    return static_cast<int>(kFactorCacheBytes / factors_.begin()->second->memory_bytes());
+  };
+  if (!factors_.empty() &&
+      static_cast<int>(factors_.size()) >= std::max(kMinCachedFactors, budget())) {
     // Drop the cached factor farthest from the requested rho.
     auto far = factors_.begin();
     if (std::abs(factors_.rbegin()->first - idx) > std::abs(far->first - idx))
