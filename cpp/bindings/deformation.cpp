@@ -147,6 +147,13 @@ void bind_deformation(py::module_& m) {
         return std::make_tuple(r.x, r.y, r.width, r.height);
       });
 
+  // OpenCV's parallel loops (the DIS flow's patch search). Debian's OpenCV runs them on TBB,
+  // which ignores OPENCV_FOR_THREADS_NUM: only cv::setNumThreads sets their thread count.
+  m.def(
+      "_set_opencv_threads", [](int n) { cv::setNumThreads(n); }, py::arg("n"),
+      "Threads of OpenCV's parallel loops in the C++ core (cv::setNumThreads).");
+  m.def("_opencv_threads", [] { return cv::getNumThreads(); });
+
   m.def(
       "_fill_depth",
       [](const F32Image& depth, int smooth_iterations, int smooth_max_level) {

@@ -410,9 +410,9 @@ class ProcessingConfig:
         unit="s",
     )
     opencv_threads: int = option(
-        1,
-        "threads of OpenCV's parallel loops in the C++ core (OPENCV_FOR_THREADS_NUM; 0: "
-        "OpenCV's default); takes effect only if the core is not loaded yet at start",
+        0,
+        "threads of OpenCV's parallel loops in the C++ core (the optical flow; set with "
+        "cv::setNumThreads when the daemon starts; 0: OpenCV's default, every core)",
         lo=0,
         hi=256,
         unit="threads",

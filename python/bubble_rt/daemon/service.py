@@ -18,7 +18,6 @@ the daemon always works on the newest data and its latency never builds up.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -140,8 +139,9 @@ class Daemon:
         cfg = self.config
         self.vitals.started_at = time.time()
         if cfg.processing.opencv_threads > 0:
-            # Read once when the C++ core loads (its first import happens below or later).
-            os.environ.setdefault("OPENCV_FOR_THREADS_NUM", str(cfg.processing.opencv_threads))
+            from bubble_rt import _core
+
+            _core._set_opencv_threads(cfg.processing.opencv_threads)
         problem = startup.mesh_file_problem(self.config)
         if problem:
             raise DaemonError(problem)
