@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 from bubble_rt.io.client import Controller, Subscriber
+from bubble_rt.io.protocol import MeshData
 
 
 def free_ports(n: int) -> list[int]:
@@ -47,6 +48,21 @@ def rss_mb(pid: int) -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024.0
     return float("nan")
+
+
+def mesh_while_running(sub: Subscriber, proc: subprocess.Popen, timeout_s: float) -> MeshData:
+    """The daemon's mesh, asked for every few seconds while ``serve`` runs: a daemon that
+    exits at start (a refused configuration) fails the run at once instead of after
+    ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            return sub.fetch_mesh(5.0)
+        except TimeoutError:
+            if proc.poll() is not None:
+                raise RuntimeError(f"serve exited with {proc.returncode} before its mesh") from None
+            if time.monotonic() > end:
+                raise
 
 
 def run_one(
@@ -97,7 +113,7 @@ def run_one(
     fox_stop = None
     try:
         with Subscriber(pub, ctl, timeout_s=600) as sub:
-            mesh_data = sub.fetch_mesh(600)
+            mesh_data = mesh_while_running(sub, proc, 600)
             if foxglove:
                 fox = connect(fox_addr)
                 fox_stop = threading.Event()
