@@ -28,6 +28,14 @@ constexpr int kMinCachedFactors = 12;
 // floored so that an all-zero solution cannot send rho to infinity.
 constexpr double kFirstForceRatio = 3e-3;
 constexpr double kMinForceRatio = 1e-4;
+// A frame whose forces outgrew the previous one's (the first frame of a touch) starts with a
+// rho far too large, and its own iterate cannot say so: its forces grow only as fast as that
+// rho lets them. Its relative duality gap then stalls; when the first rho adaptation finds the
+// gap still above this fraction of the first check's and the force rule keeps rho, rho drops
+// by this many grid steps (1.5 decades). Measured on the demo scene's loop: the touch's first
+// frame 127 -> 61 iterations at 390 nodes, 224 -> 130 at 749 (docs/evaluation.md).
+constexpr double kStallGapFraction = 0.1;
+constexpr int kStallRhoSteps = 6;
 
 // Type-II Anderson acceleration of a fixed-point map u -> G(u) (Walker & Ni), with a small
 // Tikhonov term and a restart whenever the fixed-point residual jumps.
@@ -345,6 +353,7 @@ struct GroupLassoSolver::SolveState {
   // Check schedule: the gap and iteration of the last check since rho last moved.
   int next_check = 0, next_rho_check = 0, last_check = 0;
   double last_gap = 0;
+  double first_gap = -1;  // relative gap at the first check, until the first adaptation
 };
 
 SolverResult GroupLassoSolver::solve() {
@@ -378,6 +387,7 @@ SolverResult GroupLassoSolver::solve() {
     admm_iteration(st);
     if (k < st.next_check && k != settings_.max_iter) continue;
     measure(st);
+    if (k <= settings_.check_interval) st.first_gap = relative_gap(st);
     auto status = termination(st);
     // The certificate is confirmed with A x recomputed, not only the running update of it.
     if (status == SolverStatus::solved) status = (exact_measure(st), termination(st));
@@ -462,16 +472,27 @@ void GroupLassoSolver::use_rho(SolveState& st, int* factorizations) {
 // released) gets its rho within the solve. The Anderson memory holds differences of the map
 // at the old rho, so it restarts.
 void GroupLassoSolver::adapt_rho(SolveState& st, int* factorizations) {
+  const bool stalled = st.first_gap > 0 && relative_gap(st) > kStallGapFraction * st.first_gap;
+  st.first_gap = -1;  // a stall is judged once per solve, at its first adaptation
   const double fs =
       std::max(std::sqrt((st.Ax + bh_).squaredNorm() / n_), kMinForceRatio * st.raw_force_scale);
   if (!(fs > 0)) return;
   const double ratio = rho_target(fs) / st.rho;
-  if (!rho_should_move(ratio)) return;
-  rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(ratio * st.rho)));
+  if (rho_should_move(ratio)) {
+    rho_idx_ = static_cast<int>(std::lround(kRhoGridPerDecade * std::log10(ratio * st.rho)));
+  } else if (stalled) {
+    rho_idx_ -= kStallRhoSteps;
+  } else {
+    return;
+  }
   rho_idx_ = std::clamp(rho_idx_, -80, 80);
   use_rho(st, factorizations);
   st.aa.reset();
   st.last_check = 0;  // the gap's rate of decrease was measured at the old rho
+}
+
+double GroupLassoSolver::relative_gap(const SolveState& st) {
+  return st.gap / std::max(std::abs(st.pobj), std::numeric_limits<double>::min());
 }
 
 void GroupLassoSolver::admm_iteration(SolveState& st) {

@@ -130,6 +130,7 @@ class GroupLassoSolver {
   void set_frame_rho(double raw_force_scale);
   void use_rho(SolveState& st, int* factorizations);
   void adapt_rho(SolveState& st, int* factorizations);
+  static double relative_gap(const SolveState& st);  // gap / |objective|
   // One iteration.
   void admm_iteration(SolveState& st);
   void x_update(SolveState& st) const;

@@ -487,6 +487,33 @@ def test_every_rho_a_run_visits_stays_factored():
     assert all(i.setup_time_ms == 0.0 for i in again)
 
 
+def test_contact_onset_frame_drops_rho_when_its_gap_stalls():
+    # The first frame of a touch after untouched ones starts at the untouched frames' large rho,
+    # and its own iterate cannot show that its forces grew: they grow only as fast as that rho
+    # lets them, so its duality gap stalls (kStallGapFraction, cpp/group_lasso.cpp).
+    # Calibration seed 1000's first round press (tracked by the simulator's oracle, so no
+    # images), medium mesh: its first frame in contact (frame 15, 0.25 N) took 132 iterations
+    # before the stall rule and 55 with it; the frames before it are unchanged.
+    from bubble_rt.estimation.deformation import FlowSettings
+    from bubble_rt.estimation.pipeline import Pipeline
+    from bubble_rt.eval import estimator_mesh, simulate_trajectory
+
+    traj = simulate_trajectory("round", 0, 24, 1000, render=False)  # its timing: 24 frames
+    pipe = Pipeline.capture(
+        traj.reference_frames,
+        traj.camera,
+        mesh=estimator_mesh("medium", traj),
+        fit=False,
+        flow=FlowSettings(method="oracle"),
+    )
+    est = [pipe.process(f) for f in traj.frames[:16]]
+    truth = [np.linalg.norm(f.truth.net_force) for f in traj.frames[:16]]
+    onset = next(k for k, e in enumerate(est) if e.contact.any())
+    assert all(t < 0.12 for t in truth[:onset]) and truth[onset] > 0.2
+    assert est[onset].info.status == "solved"
+    assert est[onset].info.iterations <= 80, est[onset].info.iterations
+
+
 def test_reported_certificate_belongs_to_the_returned_displacements():
     # A x is carried along the iterations, checks come early when the gap's rate predicts
     # certification, and factors at a new rho reuse the first one's symbolic analysis: the
