@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -27,19 +26,7 @@ import time
 import numpy as np
 from bubble_rt.io.client import Controller, Subscriber
 from bubble_rt.io.protocol import MeshData
-
-
-def free_ports(n: int) -> list[int]:
-    """n distinct free TCP ports (all held while choosing: one at a time, the kernel can hand
-    out the same port twice, and serve then refuses pub == control)."""
-    socks = [socket.socket() for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [int(s.getsockname()[1]) for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+from ports import free_ports
 
 
 def rss_mb(pid: int) -> float:

@@ -30,7 +30,6 @@ import argparse
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -39,12 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from ports import local_addresses
 
 
 def record(setting: str, seconds: float, out: Path) -> tuple[list[str], str]:
@@ -57,6 +51,7 @@ def record(setting: str, seconds: float, out: Path) -> tuple[list[str], str]:
     elif q:
         lines.append(f"jpeg_quality = {int(q)}")
     toml.write_text("\n".join(lines) + "\n")
+    pub, ctl = local_addresses(2)
     cmd = [
         sys.executable,
         "-m",
@@ -67,9 +62,9 @@ def record(setting: str, seconds: float, out: Path) -> tuple[list[str], str]:
         "--record",
         str(out),
         "--pub",
-        f"tcp://127.0.0.1:{free_port()}",
+        pub,
         "--control",
-        f"tcp://127.0.0.1:{free_port()}",
+        ctl,
         "--config",
         str(toml),
     ]
@@ -233,10 +228,11 @@ def replay_forces(path: Path, out: Path) -> dict[int, Any]:
     from bubble_rt.io.mcap import McapRecording
 
     n = len(McapRecording(path, warn=False))
+    pub, ctl = local_addresses(2)
     cfg = DaemonConfig().with_overrides(
         **{
-            "network.pub": f"tcp://127.0.0.1:{free_port()}",
-            "network.control": f"tcp://127.0.0.1:{free_port()}",
+            "network.pub": pub,
+            "network.control": ctl,
             "camera.source": f"replay:{path}",
             "camera.pace": "fast",
             "camera.loop": False,

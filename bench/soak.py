@@ -26,7 +26,6 @@ import os
 import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -38,12 +37,7 @@ import zmq
 from bubble_rt.io import protocol
 from bubble_rt.io.client import Controller, Subscriber
 from bubble_rt.io.protocol import pb
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from ports import local_addresses
 
 
 def proc_sample(pid: int) -> tuple[float, int, int]:
@@ -194,7 +188,7 @@ def main() -> int:
     ap.add_argument("--json", default=None, help="write every sample and the summary here")
     args = ap.parse_args()
 
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    pub, ctl = local_addresses(2)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     # The drift scene plays an hour per minute: re-zeroing scaled alike (60 s -> 1 s).
     cfg_path = f"/tmp/bubble_rt_soak_{os.getpid()}.toml"

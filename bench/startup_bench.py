@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,17 +28,12 @@ import time
 import numpy as np
 from bubble_rt.io.client import Subscriber
 from bubble_rt.io.protocol import ForceFrameData
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from ports import local_addresses
 
 
 def run_once(camera: str, extra: list[str], timeout_s: float) -> dict:
     """One launch: the three intervals (seconds; NaN when nothing arrived) and the log."""
-    pub, ctl = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    pub, ctl = local_addresses(2)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "bubble_rt", "serve", "--camera", camera]
     cmd += ["--pub", pub, "--control", ctl, *extra]
