@@ -5,7 +5,8 @@
 
 Scene: Camera.d405() (640 x 480), the medium mesh (390 nodes) fitted to a rendered dome depth,
 a speckle texture warped by a smooth flow of up to 3 px (tests/synth_rgbd.py). For each flow
-setting the DeformationTracker runs on the warped frame; "flow" is the optical flow over the
+setting (method, image scale, DIS overrides, the Lucas-Kanade refinement at the nodes) the
+DeformationTracker runs on the warped frame; "flow" is the optical flow over the
 mesh ROI, "lift" everything after it (depth hole fill, sampling, lifting, Laplacian fill),
 "fill" the depth hole filling on its own. Flow error: endpoint error (pixels) of the flow
 sampled at the node projections against the true flow, RMS and max over the nodes. "cpu ms" is
@@ -40,21 +41,21 @@ from bubble_rt.mesh import Mesh  # noqa: E402
 from scipy.ndimage import map_coordinates  # noqa: E402
 from synth_rgbd import dome_depth, smooth_flow, texture, warp  # noqa: E402
 
-# (method, scale, DIS finest-scale override or None, DIS patch-stride override or None)
-CONFIGS: list[tuple[str, float, int | None, int | None]] = [
-    ("dis_ultrafast", 1.0, None, None),
-    ("dis_fast", 1.0, None, None),
-    ("dis_medium", 1.0, None, None),
-    ("dis_medium", 0.75, None, None),
-    ("dis_medium", 0.5, None, None),
-    ("dis_ultrafast", 1.0, 1, 4),
-    ("dis_ultrafast", 1.0, 1, 5),
-    ("dis_ultrafast", 1.0, 1, 6),
-    ("dis_fast", 1.0, 1, None),
-    ("dis_fast", 0.5, 0, None),
-    ("farneback", 1.0, None, None),
-    ("farneback", 0.5, None, None),
-    ("farneback_heavy", 1.0, None, None),
+# (method, scale, DIS finest-scale override or None, DIS patch-stride override or None,
+#  Lucas-Kanade refinement window at the nodes or None)
+CONFIGS: list[tuple[str, float, int | None, int | None, int | None]] = [
+    ("dis_ultrafast", 1.0, None, None, 15),
+    ("dis_ultrafast", 1.0, None, None, None),
+    ("dis_ultrafast", 1.0, 1, 5, None),
+    ("dis_ultrafast", 1.0, 1, 5, 15),
+    ("dis_fast", 1.0, None, None, None),
+    ("dis_fast", 1.0, None, None, 15),
+    ("dis_medium", 1.0, None, None, None),
+    ("dis_medium", 0.5, None, None, None),
+    ("dis_medium", 0.5, None, None, 15),
+    ("farneback", 1.0, None, None, None),
+    ("farneback", 0.5, None, None, None),
+    ("farneback_heavy", 1.0, None, None, None),
 ]
 
 
@@ -79,9 +80,13 @@ def main(argv: list[str] | None = None) -> int:
         fill_ms.append((time.perf_counter() - t0) * 1e3)
 
     trackers = []
-    for method, scale, finest, stride in CONFIGS:
+    for method, scale, finest, stride, refine in CONFIGS:
         settings = FlowSettings(
-            method=method, scale=scale, dis_finest_scale=finest, dis_patch_stride=stride
+            method=method,
+            scale=scale,
+            dis_finest_scale=finest,
+            dis_patch_stride=stride,
+            refine_window_px=refine,
         )
         tr = DeformationTracker(mesh, cam, ref, settings)
         tr.track(cur)  # warm-up
@@ -92,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     last = [tr.track(cur) for tr in trackers]
     # Round robin over the settings, so that load from elsewhere hits them all alike.
     for rep in range(args.repeats):
-        for k, ((method, _, _, _), tr) in enumerate(zip(CONFIGS, trackers, strict=True)):
+        for k, ((method, *_), tr) in enumerate(zip(CONFIGS, trackers, strict=True)):
             if method == "farneback_heavy" and rep % 5:
                 continue  # ~0.2 s per call: a fifth of the repeats is enough
             c0 = time.process_time()
@@ -104,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             samples[k]["lift"].append(d.timings_ms["lift"])
             last[k] = d
     rows = []
-    for (method, scale, finest, stride), tr, d, sm in zip(
+    for (method, scale, finest, stride, refine), tr, d, sm in zip(
         CONFIGS, trackers, last, samples, strict=True
     ):
         truth = np.column_stack(
@@ -120,9 +125,11 @@ def main(argv: list[str] | None = None) -> int:
                 scale=scale,
                 dis_finest_scale=finest,
                 dis_patch_stride=stride,
+                refine_window_px=refine,
                 name=f"{method}@{scale:g}"
                 + ("" if finest is None else f"/finest{finest}")
-                + ("" if stride is None else f"/stride{stride}"),
+                + ("" if stride is None else f"/stride{stride}")
+                + ("" if refine is None else f"/lk{refine}"),
                 roi=list(tr.roi),
                 flow_ms=float(np.median(sm["flow"])),
                 lift_ms=float(np.median(sm["lift"])),
@@ -144,14 +151,14 @@ def main(argv: list[str] | None = None) -> int:
         f"depth fill alone {np.median(fill_ms):.1f} ms"
     )
     print(
-        f"{'setting':<28}{'flow ms':>9}{'lift ms':>9}{'flow+lift':>11}{'(min)':>8}{'cpu ms':>8}"
+        f"{'setting':<34}{'flow ms':>9}{'lift ms':>9}{'flow+lift':>11}{'(min)':>8}{'cpu ms':>8}"
         f"{'rms px':>9}{'max px':>9}"
     )
     for r in rows:
         name = r["name"]
         mark = "  <- fastest with rms <= 0.1 px" if r is best else ""
         print(
-            f"{name:<28}{r['flow_ms']:>9.1f}{r['lift_ms']:>9.1f}"
+            f"{name:<34}{r['flow_ms']:>9.1f}{r['lift_ms']:>9.1f}"
             f"{r['flow_ms'] + r['lift_ms']:>11.1f}{r['total_min_ms']:>8.1f}{r['cpu_ms']:>8.1f}"
             f"{r['flow_rms_px']:>9.3f}{r['flow_max_px']:>9.3f}{mark}"
         )

@@ -126,6 +126,7 @@ void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
     Eigen::VectorXd fb(n);
     const FlowField* bwd = flow.backward().empty() ? nullptr : &flow.backward();
     sample_flow(flow.forward(), bwd, uv_ref, fb_threshold, out.flow, fb, out.flow_flags);
+    flow.refine(uv_ref, out.flow_flags, out.flow);
   } catch (...) {
     flow_error = std::current_exception();
   }

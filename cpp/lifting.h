@@ -9,7 +9,6 @@
 
 namespace bubble {
 
-using RowMatrixX2d = Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>;
 using RowMatrixX3d = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
 
 // Per-node reasons a lifted node is not trusted (bit flags; 0 = valid).

@@ -6,6 +6,19 @@
 #include "errors.h"
 
 namespace bubble {
+namespace {
+
+// The refinement starts at the dense flow, so it runs on the working image alone (no pyramid
+// levels above it) and needs few steps.
+constexpr int kRefineIterations = 10;
+constexpr double kRefineEpsilon = 0.03;  // working pixels
+// Weaker gradients than this (OpenCV's normalised minimum eigenvalue) are not refined: a
+// window without texture has no position of its own.
+constexpr double kRefineMinEigen = 1e-4;
+// A refinement that moves further from the dense flow has locked onto another texture.
+constexpr double kMaxRefineStepPx = 2.0;  // full-resolution pixels
+
+}  // namespace
 
 bool FlowField::sample(double u, double v, double* du, double* dv) const {
   if (flow.empty() || !std::isfinite(u) || !std::isfinite(v)) return false;
@@ -35,6 +48,8 @@ bool FlowField::sample(double u, double v, double* du, double* dv) const {
 
 OpticalFlow::OpticalFlow(const FlowParams& params) : params_(params) {
   require(params.scale > 0.0 && params.scale <= 1.0, "flow scale must be in (0, 1]");
+  require(params.refine_window == 0 || (params.refine_window >= 5 && params.refine_window % 2 == 1),
+          "refinement window must be 0 (none) or odd and >= 5 pixels");
   if (params.method == FlowMethod::kDis) {
     require(params.dis_preset >= 0 && params.dis_preset <= 2,
             "DIS preset must be 0 (ultrafast), 1 (fast) or 2 (medium)");
@@ -78,6 +93,12 @@ void OpticalFlow::set_reference(const cv::Mat& rgb, cv::Rect roi) {
   require(roi_.width >= 8 && roi_.height >= 8,
           "flow region of interest is empty or smaller than 8 x 8 pixels");
   reference_ = prepare(rgb);
+  reference_pyramid_.clear();
+  current_pyramid_.clear();
+  if (params_.refine_window > 0) {
+    const cv::Size window(params_.refine_window, params_.refine_window);
+    cv::buildOpticalFlowPyramid(reference_, reference_pyramid_, window, 0, true);
+  }
   forward_ = FlowField();
   backward_ = FlowField();
 }
@@ -102,12 +123,56 @@ void OpticalFlow::compute(const cv::Mat& rgb) {
   cv::Mat fwd;
   run(reference_, cur, fwd);
   forward_ = FlowField{fwd, roi_.x, roi_.y, params_.scale};
+  if (params_.refine_window > 0) {
+    const cv::Size window(params_.refine_window, params_.refine_window);
+    cv::buildOpticalFlowPyramid(cur, current_pyramid_, window, 0, false);
+  }
   if (params_.forward_backward) {
     cv::Mat bwd;
     run(cur, reference_, bwd);
     backward_ = FlowField{bwd, roi_.x, roi_.y, params_.scale};
   } else {
     backward_ = FlowField();
+  }
+}
+
+void OpticalFlow::refine(
+    const Eigen::Ref<const RowMatrixX2d>& uv,
+    const Eigen::Ref<const Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>>& flags,
+    Eigen::Ref<RowMatrixX2d> flow) const {
+  if (params_.refine_window == 0) return;
+  require(!current_pyramid_.empty(), "refine: no flow has been computed");
+  require(uv.rows() == flow.rows() && uv.rows() == flags.rows(),
+          "refine: uv, flags and flow differ in length");
+  // Working-image coordinates (FlowField's convention) of the unflagged pixels.
+  const double s = params_.scale;
+  std::vector<cv::Point2f> start, moved;
+  std::vector<Eigen::Index> index;
+  for (Eigen::Index i = 0; i < uv.rows(); ++i) {
+    if (flags(i) != 0) continue;
+    const float x = static_cast<float>((uv(i, 0) - roi_.x + 0.5) * s - 0.5);
+    const float y = static_cast<float>((uv(i, 1) - roi_.y + 0.5) * s - 0.5);
+    start.emplace_back(x, y);
+    moved.emplace_back(x + static_cast<float>(flow(i, 0) * s),
+                       y + static_cast<float>(flow(i, 1) * s));
+    index.push_back(i);
+  }
+  if (start.empty()) return;
+  std::vector<unsigned char> tracked;
+  std::vector<float> error;
+  const cv::Size window(params_.refine_window, params_.refine_window);
+  const cv::TermCriteria stop(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, kRefineIterations,
+                              kRefineEpsilon);
+  cv::calcOpticalFlowPyrLK(reference_pyramid_, current_pyramid_, start, moved, tracked, error,
+                           window, 0, stop, cv::OPTFLOW_USE_INITIAL_FLOW, kRefineMinEigen);
+  for (size_t j = 0; j < start.size(); ++j) {
+    const Eigen::Index i = index[j];
+    const double du = (moved[j].x - start[j].x) / s, dv = (moved[j].y - start[j].y) / s;
+    const bool near = std::hypot(du - flow(i, 0), dv - flow(i, 1)) < kMaxRefineStepPx;
+    if (tracked[j] && std::isfinite(du) && std::isfinite(dv) && near) {
+      flow(i, 0) = du;
+      flow(i, 1) = dv;
+    }
   }
 }
 

@@ -1,8 +1,12 @@
-// Dense optical flow from a reference image to the current one, over a region of interest.
+// Dense optical flow from a reference image to the current one, over a region of interest,
+// and its Lucas-Kanade refinement at given pixels.
 #pragma once
 
+#include <Eigen/Core>
+#include <cstdint>
 #include <opencv2/core.hpp>
 #include <opencv2/video/tracking.hpp>
+#include <vector>
 
 namespace bubble {
 
@@ -39,7 +43,12 @@ struct FlowParams {
   double scale = 1.0;
   // Also compute the backward flow (current -> reference) for a consistency check.
   bool forward_backward = false;
+  // Window (odd, working-image pixels) of the Lucas-Kanade refinement of the flow sampled at
+  // the nodes (OpticalFlow::refine); 0: no refinement.
+  int refine_window = 0;
 };
+
+using RowMatrixX2d = Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>;
 
 // A flow field over a sub-image, possibly at reduced resolution. Full-resolution pixel
 // (u, v) sits at field coordinates ((u - x0 + 0.5) * scale - 0.5, (v - y0 + 0.5) * scale - 0.5).
@@ -61,6 +70,15 @@ class OpticalFlow {
   void set_reference(const cv::Mat& rgb, cv::Rect roi);
   // Computes the flow reference -> rgb over the ROI (and back when forward_backward).
   void compute(const cv::Mat& rgb);
+  // Refines the flow sampled at full-resolution pixels uv (N x 2, full-resolution pixels, in
+  // place) by Lucas-Kanade on the working images of the last compute(), started from it: the
+  // dense field is smooth over its patches, the refinement matches a window at each pixel
+  // itself. Pixels with flags set are left as they are, and so is a pixel whose window is not
+  // tracked or would move further than kMaxRefineStepPx from the dense flow. No-op when
+  // refine_window is 0.
+  void refine(const Eigen::Ref<const RowMatrixX2d>& uv,
+              const Eigen::Ref<const Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>>& flags,
+              Eigen::Ref<RowMatrixX2d> flow) const;
   const FlowField& forward() const { return forward_; }
   const FlowField& backward() const { return backward_; }
   const FlowParams& params() const { return params_; }
@@ -74,6 +92,9 @@ class OpticalFlow {
   FlowParams params_;
   cv::Ptr<cv::DISOpticalFlow> dis_;
   cv::Mat reference_;  // grey ROI at working scale
+  // The refinement's reference (padded, with its derivatives: built once per reference) and
+  // the last compute()'s padded current image.
+  std::vector<cv::Mat> reference_pyramid_, current_pyramid_;
   cv::Rect roi_;
   cv::Size size_;
   FlowField forward_;

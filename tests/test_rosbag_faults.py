@@ -87,13 +87,14 @@ def test_estimate_writes_every_good_frame_and_names_the_bad_one(
     assert "1 skipped" in capsys.readouterr().err
     for f in res["frames"]:  # the good frames read as in the undamaged bag: the same before
         # the bad one, within 5 % after it (the flow tracks from the frame before the gap).
-        # "The same" is to 1e-6 relative: the 32FC1 variants hold the 16UC1 bag's millimetres
+        # "The same" is to 1e-5 relative: the 32FC1 variants hold the 16UC1 bag's millimetres
         # rounded to float32 metres, and a support of a few dozen nodes carries that rounding
-        # into the force (measured: 3.8e-7 of 12 N).
+        # into the force (measured: 3.4e-6 of 12.7 N; 3.8e-7 before the flow's refinement at
+        # the nodes moved the solve's path; the solve is certified to 8e-4 of its objective).
         got, want = np.asarray(f["net_force_mesh"]), np.asarray(good_forces[f["index"]])
         size = max(1.0, float(np.linalg.norm(want)))
         same = f["index"] < BAD or variant in READING
-        tol = 1e-6 * size if same else 0.05 * np.linalg.norm(want) + 1e-6
+        tol = 1e-5 * size if same else 0.05 * np.linalg.norm(want) + 1e-6
         assert np.linalg.norm(got - want) <= tol
 
 

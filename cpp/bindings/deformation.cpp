@@ -61,7 +61,7 @@ void bind_deformation(py::module_& m) {
       .def(py::init([](int method, int dis_preset, double pyr_scale, int levels, int winsize,
                        int iterations, int poly_n, double poly_sigma, bool gaussian, double scale,
                        bool forward_backward, int dis_finest_scale, int dis_refinement_iterations,
-                       int dis_patch_stride) {
+                       int dis_patch_stride, int refine_window) {
              bubble::FlowParams p;
              bubble::require(method == 0 || method == 1, "method must be 0 (Farneback) or 1 (DIS)");
              p.method = static_cast<bubble::FlowMethod>(method);
@@ -72,13 +72,14 @@ void bind_deformation(py::module_& m) {
              p.dis_finest_scale = dis_finest_scale;
              p.dis_refinement_iterations = dis_refinement_iterations;
              p.dis_patch_stride = dis_patch_stride;
+             p.refine_window = refine_window;
              return new bubble::OpticalFlow(p);
            }),
            py::arg("method"), py::arg("dis_preset"), py::arg("pyr_scale"), py::arg("levels"),
            py::arg("winsize"), py::arg("iterations"), py::arg("poly_n"), py::arg("poly_sigma"),
            py::arg("gaussian"), py::arg("scale"), py::arg("forward_backward"),
            py::arg("dis_finest_scale") = -1, py::arg("dis_refinement_iterations") = -1,
-           py::arg("dis_patch_stride") = -1)
+           py::arg("dis_patch_stride") = -1, py::arg("refine_window") = 0)
       .def(
           "set_reference",
           [](bubble::OpticalFlow& self, const U8Image& rgb, int x, int y, int w, int h) {
@@ -106,6 +107,7 @@ void bind_deformation(py::module_& m) {
               py::gil_scoped_release release;
               const bubble::FlowField* bwd = self.backward().empty() ? nullptr : &self.backward();
               bubble::sample_flow(self.forward(), bwd, pts, fb_threshold, flow, fb, flags);
+              self.refine(pts, flags, flow);
             }
             return std::make_tuple(flow, fb, flags);
           },

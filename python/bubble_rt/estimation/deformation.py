@@ -71,13 +71,15 @@ class FlowSettings:
             nodes whose depth comes from a coarser level are flagged.
         depth_smoothing: Gauss-Seidel sweeps that make the hole fill harmonic.
         dis_finest_scale: finest pyramid level the DIS flow is computed at (0 = working
-            resolution). Default 1, i.e. finer than the ultrafast/fast presets' own 2 (medium
-            uses 1 anyway); None keeps each preset exactly as OpenCV defines it.
+            resolution); None keeps each preset exactly as OpenCV defines it (2 for the
+            ultrafast and fast presets, 1 for medium).
         dis_refinement_iterations: variational refinement iterations; None keeps the preset.
         dis_patch_stride: pixels between neighbouring DIS patches (1 to the patch size, 8);
-            None keeps the preset's 4. Default 5: the flow costs 28 % less than at 4 for the
-            same flow error on the synthetic warp (bench/deformation_bench.py) and 1 % more
-            force error on the calibration seeds (docs/evaluation.md, "Speed").
+            None keeps the preset's (4, or 3 for medium).
+        refine_window_px: window (odd, pixels) of the Lucas-Kanade refinement of the flow at
+            each node, started from the dense flow; None: the dense flow as sampled. With it
+            the DIS preset's own pyramid level 2 reads the calibration seeds as level 1 read
+            them without it, in half the flow time (docs/evaluation.md, "Speed").
         pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian: Farneback
             parameters for method "farneback" (defaults: OpenCV's documented example values
             0.5, 3, 15, 3, 5, 1.2, box window).
@@ -106,9 +108,10 @@ class FlowSettings:
     fb_threshold_px: float = 1.0
     max_fill_level: int = 3
     depth_smoothing: int = 4
-    dis_finest_scale: int | None = 1
+    dis_finest_scale: int | None = None
     dis_refinement_iterations: int | None = None
-    dis_patch_stride: int | None = 5
+    dis_patch_stride: int | None = None
+    refine_window_px: int | None = 15
     pyr_scale: float = 0.5
     levels: int = 3
     winsize: int = 15
@@ -451,6 +454,7 @@ class DeformationTracker(NodeTracker):
                     -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
                 ),
                 dis_patch_stride=-1 if s.dis_patch_stride is None else s.dis_patch_stride,
+                refine_window=s.refine_window_px or 0,
                 **s.farneback_params(),
             )
         self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)

@@ -15,6 +15,7 @@ IMAGE_FLOW_METHODS: tuple[str, ...] = (
 ORACLE_FLOW_METHOD = "oracle"
 #: Every flow method a config may name.
 FLOW_METHODS: tuple[str, ...] = IMAGE_FLOW_METHODS + (ORACLE_FLOW_METHOD,)
-#: The default: from bench/deformation_bench.py, the fastest setting whose RMS flow error on the
-#: synthetic warp is <= 0.1 px (0.068 px): DIS ultrafast refined down to pyramid level 1.
+#: The default: DIS ultrafast at its preset's pyramid level 2, then refined at each node by
+#: Lucas-Kanade (FlowSettings.refine_window_px; docs/evaluation.md, "The flow refined at the
+#: nodes").
 DEFAULT_FLOW_METHOD = "dis_ultrafast"
