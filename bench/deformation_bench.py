@@ -151,14 +151,14 @@ def main(argv: list[str] | None = None) -> int:
         f"depth fill alone {np.median(fill_ms):.1f} ms"
     )
     print(
-        f"{'setting':<34}{'flow ms':>9}{'lift ms':>9}{'flow+lift':>11}{'(min)':>8}{'cpu ms':>8}"
+        f"{'setting':<38}{'flow ms':>9}{'lift ms':>9}{'flow+lift':>11}{'(min)':>8}{'cpu ms':>8}"
         f"{'rms px':>9}{'max px':>9}"
     )
     for r in rows:
         name = r["name"]
         mark = "  <- fastest with rms <= 0.1 px" if r is best else ""
         print(
-            f"{name:<34}{r['flow_ms']:>9.1f}{r['lift_ms']:>9.1f}"
+            f"{name:<38}{r['flow_ms']:>9.1f}{r['lift_ms']:>9.1f}"
             f"{r['flow_ms'] + r['lift_ms']:>11.1f}{r['total_min_ms']:>8.1f}{r['cpu_ms']:>8.1f}"
             f"{r['flow_rms_px']:>9.3f}{r['flow_max_px']:>9.3f}{mark}"
         )
