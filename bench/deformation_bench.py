@@ -42,20 +42,20 @@ from scipy.ndimage import map_coordinates  # noqa: E402
 from synth_rgbd import dome_depth, smooth_flow, texture, warp  # noqa: E402
 
 # (method, scale, DIS finest-scale override or None, DIS patch-stride override or None,
-#  Lucas-Kanade refinement window at the nodes or None)
-CONFIGS: list[tuple[str, float, int | None, int | None, int | None]] = [
+#  Lucas-Kanade refinement window at the nodes, 0 for none)
+CONFIGS: list[tuple[str, float, int | None, int | None, int]] = [
     ("dis_ultrafast", 1.0, None, None, 15),
-    ("dis_ultrafast", 1.0, None, None, None),
-    ("dis_ultrafast", 1.0, 1, 5, None),
+    ("dis_ultrafast", 1.0, None, None, 0),
+    ("dis_ultrafast", 1.0, 1, 5, 0),
     ("dis_ultrafast", 1.0, 1, 5, 15),
-    ("dis_fast", 1.0, None, None, None),
+    ("dis_fast", 1.0, None, None, 0),
     ("dis_fast", 1.0, None, None, 15),
-    ("dis_medium", 1.0, None, None, None),
-    ("dis_medium", 0.5, None, None, None),
+    ("dis_medium", 1.0, None, None, 0),
+    ("dis_medium", 0.5, None, None, 0),
     ("dis_medium", 0.5, None, None, 15),
-    ("farneback", 1.0, None, None, None),
-    ("farneback", 0.5, None, None, None),
-    ("farneback_heavy", 1.0, None, None, None),
+    ("farneback", 1.0, None, None, 0),
+    ("farneback", 0.5, None, None, 0),
+    ("farneback_heavy", 1.0, None, None, 0),
 ]
 
 
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
                 name=f"{method}@{scale:g}"
                 + ("" if finest is None else f"/finest{finest}")
                 + ("" if stride is None else f"/stride{stride}")
-                + ("" if refine is None else f"/lk{refine}"),
+                + (f"/lk{refine}" if refine else ""),
                 roi=list(tr.roi),
                 flow_ms=float(np.median(sm["flow"])),
                 lift_ms=float(np.median(sm["lift"])),

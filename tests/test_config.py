@@ -355,3 +355,23 @@ def test_parameter_ranges_are_the_configurations():
             assert validate_params({name: bad}) == (f"set_params: {name} {r.problem(bad)}")
         DaemonConfig.from_dict({"estimator": {name: r.lo}})
         DaemonConfig.from_dict({"estimator": {name: r.hi}})
+
+
+def test_flow_refinement_window_reaches_the_tracker_and_a_bad_one_names_the_key(tmp_path):
+    """`[flow] refine_window_px` is the tracker's FlowSettings.refine_window_px (0: off); an
+    even window is refused at load with the key named."""
+    from bubble_rt.estimation.deformation import FlowSettings
+    from bubble_rt.estimation.pipeline import capture_settings
+
+    def flow(cfg: DaemonConfig) -> FlowSettings:
+        return capture_settings(cfg, realtime=False, layout="sim")["flow"]
+
+    assert flow(DaemonConfig()).refine_window_px == FlowSettings().refine_window_px == 15
+    off = DaemonConfig().with_overrides(**{"flow.refine_window_px": 0})
+    assert flow(off).refine_window_px == 0
+    p = tmp_path / "c.toml"
+    p.write_text("[flow]\nrefine_window_px = 14\n")
+    with pytest.raises(ConfigError, match=r"flow\.refine_window_px: must be 0 \(none\) or odd"):
+        DaemonConfig.load(p)
+    with pytest.raises(ValueError, match="refine_window_px must be 0"):
+        FlowSettings(refine_window_px=3)

@@ -13,7 +13,12 @@ from typing import Any
 
 from bubble_rt._validate import ParamRange, PathError, regular_file, zmq_endpoint_problem
 from bubble_rt.config.options import ConfigError, _check, _field, check_fields, key_range, option
-from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS
+from bubble_rt.estimation.names import (
+    DEFAULT_FLOW_METHOD,
+    DEFAULT_REFINE_WINDOW_PX,
+    FLOW_METHODS,
+    refine_window_problem,
+)
 from bubble_rt.estimation.params import ESTIMATOR_PARAMS, FLOW_SCALE
 from bubble_rt.estimation.registry import estimator_kinds
 from bubble_rt.io.codec_names import COLOR_CODECS
@@ -277,9 +282,20 @@ class FlowSection:
         unit=FLOW_SCALE.unit,
     )
     forward_backward: bool = option(False, "forward-backward consistency check")
+    refine_window_px: int = option(
+        DEFAULT_REFINE_WINDOW_PX,
+        "window of the Lucas-Kanade refinement of the flow at each node, started from the "
+        "dense flow (odd); 0: the dense flow as sampled",
+        lo=0,
+        hi=63,
+        unit="px",
+    )
 
     def __post_init__(self) -> None:
         check_fields(self)
+        problem = refine_window_problem(self.refine_window_px)
+        if problem is not None:
+            raise ConfigError("refine_window_px", problem)
 
 
 @dataclass(frozen=True)

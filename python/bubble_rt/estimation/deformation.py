@@ -31,7 +31,13 @@ from bubble_rt.estimation.lifting import (
     neighbour_outliers,
     neighbour_table,
 )
-from bubble_rt.estimation.names import DEFAULT_FLOW_METHOD, FLOW_METHODS, IMAGE_FLOW_METHODS
+from bubble_rt.estimation.names import (
+    DEFAULT_FLOW_METHOD,
+    DEFAULT_REFINE_WINDOW_PX,
+    FLOW_METHODS,
+    IMAGE_FLOW_METHODS,
+    refine_window_problem,
+)
 from bubble_rt.estimation.params import FLOW_SCALE
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
@@ -77,7 +83,7 @@ class FlowSettings:
         dis_patch_stride: pixels between neighbouring DIS patches (1 to the patch size, 8);
             None keeps the preset's (4, or 3 for medium).
         refine_window_px: window (odd, pixels) of the Lucas-Kanade refinement of the flow at
-            each node, started from the dense flow; None: the dense flow as sampled. With it
+            each node, started from the dense flow; 0: the dense flow as sampled. With it
             the DIS preset's own pyramid level 2 reads the calibration seeds as level 1 read
             them without it, in half the flow time (docs/evaluation.md, "Speed").
         pyr_scale, levels, winsize, iterations, poly_n, poly_sigma, gaussian: Farneback
@@ -111,7 +117,7 @@ class FlowSettings:
     dis_finest_scale: int | None = None
     dis_refinement_iterations: int | None = None
     dis_patch_stride: int | None = None
-    refine_window_px: int | None = 15
+    refine_window_px: int = DEFAULT_REFINE_WINDOW_PX
     pyr_scale: float = 0.5
     levels: int = 3
     winsize: int = 15
@@ -132,6 +138,9 @@ class FlowSettings:
             raise ValueError(f"flow scale {problem}")
         if self.margin_px < 0:
             raise ValueError(f"margin_px must be >= 0, got {self.margin_px}")
+        problem = refine_window_problem(self.refine_window_px)
+        if problem is not None:
+            raise ValueError(f"refine_window_px {problem}")
         if self.jump_m is not None and not self.jump_m > 0:
             raise ValueError(f"jump_m must be > 0 (or None), got {self.jump_m}")
 
@@ -454,7 +463,7 @@ class DeformationTracker(NodeTracker):
                     -1 if s.dis_refinement_iterations is None else s.dis_refinement_iterations
                 ),
                 dis_patch_stride=-1 if s.dis_patch_stride is None else s.dis_patch_stride,
-                refine_window=s.refine_window_px or 0,
+                refine_window=s.refine_window_px,
                 **s.farneback_params(),
             )
         self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)

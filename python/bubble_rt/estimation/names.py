@@ -19,3 +19,12 @@ FLOW_METHODS: tuple[str, ...] = IMAGE_FLOW_METHODS + (ORACLE_FLOW_METHOD,)
 #: Lucas-Kanade (FlowSettings.refine_window_px; docs/evaluation.md, "The flow refined at the
 #: nodes").
 DEFAULT_FLOW_METHOD = "dis_ultrafast"
+#: Window (pixels) of that refinement; 0 turns it off.
+DEFAULT_REFINE_WINDOW_PX = 15
+
+
+def refine_window_problem(window: int) -> str | None:
+    """Why ``window`` is not a refinement window (odd, at least 5 px, or 0: none), or None."""
+    if window == 0 or (window >= 5 and window % 2 == 1):
+        return None
+    return f"must be 0 (none) or odd and >= 5 pixels, got {window}"

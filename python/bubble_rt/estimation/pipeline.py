@@ -69,7 +69,10 @@ def capture_settings(config: Any, *, realtime: bool, layout: str = "sim") -> dic
         "kind": ec.kind,
         "config": dataclasses.replace(est, **config_changes(est, values)),
         "flow": FlowSettings(
-            method=fc.method, scale=fc.scale, forward_backward=fc.forward_backward
+            method=fc.method,
+            scale=fc.scale,
+            forward_backward=fc.forward_backward,
+            refine_window_px=fc.refine_window_px,
         ),
         "plausibility": PlausibilitySettings.from_config(config, profile.bubble),
     }
