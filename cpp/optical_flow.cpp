@@ -158,6 +158,7 @@ void OpticalFlow::refine(
     index.push_back(i);
   }
   if (start.empty()) return;
+  // Lucas-Kanade from the dense flow, on the working images alone.
   std::vector<unsigned char> tracked;
   std::vector<float> error;
   const cv::Size window(params_.refine_window, params_.refine_window);
@@ -165,6 +166,7 @@ void OpticalFlow::refine(
                               kRefineEpsilon);
   cv::calcOpticalFlowPyrLK(reference_pyramid_, current_pyramid_, start, moved, tracked, error,
                            window, 0, stop, cv::OPTFLOW_USE_INITIAL_FLOW, kRefineMinEigen);
+  // Keep what was tracked and stayed near the dense flow.
   for (size_t j = 0; j < start.size(); ++j) {
     const Eigen::Index i = index[j];
     const double du = (moved[j].x - start[j].x) / s, dv = (moved[j].y - start[j].y) / s;
