@@ -40,13 +40,23 @@ def true_flow_at(F: np.ndarray, uv: np.ndarray) -> np.ndarray:
     )
 
 
-def flow_error(scene, method: str) -> np.ndarray:
+def warp_flow(scene, settings: FlowSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Flow at the nodes (px) of the synthetic 3 px warp, and its error against the truth."""
     cam, depth, img, ref, mesh = scene
     F = smooth_flow(cam.height, cam.width, 3.0)
-    cur = Frame(warp(img, F), depth, 100000.0)
-    tr = DeformationTracker(mesh, cam, ref, FlowSettings(method=method))
-    d = tr.track(cur)
-    return np.linalg.norm(d.flow - true_flow_at(F, tr.uv_ref), axis=1)
+    tr = DeformationTracker(mesh, cam, ref, settings)
+    flow = tr.track(Frame(warp(img, F), depth, 100000.0)).flow
+    return flow, np.linalg.norm(flow - true_flow_at(F, tr.uv_ref), axis=1)
+
+
+def flow_error(scene, method: str) -> np.ndarray:
+    return warp_flow(scene, FlowSettings(method=method))[1]
+
+
+def _warp_rms(scene, settings: FlowSettings) -> tuple[float, np.ndarray]:
+    """RMS flow error at the nodes (px) of the synthetic warp, and the flow."""
+    flow, err = warp_flow(scene, settings)
+    return float(np.sqrt(np.mean(err**2))), flow
 
 
 def test_flow_at_nodes_farneback_within_0_3_px(scene):
@@ -57,16 +67,6 @@ def test_flow_at_nodes_farneback_within_0_3_px(scene):
 def test_flow_at_nodes_dis_medium_within_0_3_px(scene):
     err = flow_error(scene, "dis_medium")
     assert err.max() < 0.3
-
-
-def _warp_rms(scene, settings: FlowSettings) -> tuple[float, np.ndarray]:
-    """RMS flow error at the nodes (px) of the synthetic 3 px warp, and the flow."""
-    cam, depth, img, ref, mesh = scene
-    F = smooth_flow(cam.height, cam.width, 3.0)
-    tr = DeformationTracker(mesh, cam, ref, settings)
-    flow = tr.track(Frame(warp(img, F), depth, 100000.0)).flow
-    err = np.linalg.norm(flow - true_flow_at(F, tr.uv_ref), axis=1)
-    return float(np.sqrt(np.mean(err**2))), flow
 
 
 def test_refinement_at_the_nodes_beats_the_finer_dense_flow(scene):
