@@ -101,18 +101,18 @@ double ms_since(std::chrono::steady_clock::time_point t0) {
 }
 }  // namespace
 
-void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
-                  const Eigen::Ref<const RowMatrixX2d>& uv_ref, double fb_threshold,
-                  int smooth_iterations, int max_fill_level, const PinholeIntrinsics& K,
-                  TrackedPixels& out) {
-  require(depth.type() == CV_32F, "track_pixels: depth must be float32");
+void PixelTracker::track(const cv::Mat& rgb, const cv::Mat& depth,
+                         const Eigen::Ref<const RowMatrixX2d>& uv_ref, double fb_threshold,
+                         int smooth_iterations, int max_fill_level, const PinholeIntrinsics& K,
+                         TrackedPixels& out) {
+  require(depth.type() == CV_32F, "track: depth must be float32");
   const Eigen::Index n = uv_ref.rows();
   const auto t0 = std::chrono::steady_clock::now();
   // The fill reads only the depth image, the flow only the colour one: run them side by side.
   std::exception_ptr fill_error;
   std::thread filler([&] {
     try {
-      fill_depth(depth, out.filled, out.level, smooth_iterations, max_fill_level + 1);
+      fill_.fill(depth, smooth_iterations, max_fill_level + 1);
     } catch (...) {
       fill_error = std::current_exception();
     }
@@ -122,11 +122,11 @@ void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
   out.flow_flags = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>::Zero(n);
   std::exception_ptr flow_error;
   try {
-    flow.compute(rgb);
+    flow_.compute(rgb);
     Eigen::VectorXd fb(n);
-    const FlowField* bwd = flow.backward().empty() ? nullptr : &flow.backward();
-    sample_flow(flow.forward(), bwd, uv_ref, fb_threshold, out.flow, fb, out.flow_flags);
-    flow.refine(uv_ref, out.flow_flags, out.flow);
+    const FlowField* bwd = flow_.backward().empty() ? nullptr : &flow_.backward();
+    sample_flow(flow_.forward(), bwd, uv_ref, fb_threshold, out.flow, fb, out.flow_flags);
+    flow_.refine(uv_ref, out.flow_flags, out.flow);
   } catch (...) {
     flow_error = std::current_exception();
   }
@@ -135,6 +135,8 @@ void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
   filler.join();  // always joined, also when the flow failed
   if (flow_error) std::rethrow_exception(flow_error);
   if (fill_error) std::rethrow_exception(fill_error);
+  out.filled = fill_.filled();
+  out.level = fill_.level();
   const RowMatrixX2d uv = uv_ref + out.flow;
   out.points.resize(n, 3);
   out.lift_flags = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>::Zero(n);

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <opencv2/core.hpp>
 
+#include "depth_fill.h"
 #include "optical_flow.h"
 
 namespace bubble {
@@ -47,21 +48,34 @@ void lift_pixels(const cv::Mat& filled, const cv::Mat& level,
                  Eigen::Ref<Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>> flags);
 
 // One frame of tracking: the depth fill runs on its own thread while the flow is computed (the
-// two read different images), then the flow is sampled at `uv_ref` and the displaced pixels are
-// lifted. Results are those of compute + sample_flow + fill_depth + lift_pixels called one after
-// the other, bit for bit. Wall times (ms): flow (compute + sample), fill (on its thread, beside
-// the flow), lift (from the end of the flow: waiting for the fill, then lifting).
+// two read different images), then the flow is sampled at `uv_ref`, refined, and the displaced
+// pixels are lifted. Results are those of compute + sample_flow + refine + fill_depth +
+// lift_pixels called one after the other, bit for bit. Wall times (ms): flow (compute, sample,
+// refine), fill (on its thread, beside the flow), lift (from the end of the flow: waiting for
+// the fill, then lifting).
 struct TrackedPixels {
   RowMatrixX2d flow;
   Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1> flow_flags;
   RowMatrixX3d points;  // camera frame, metres (pinhole lift)
   Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1> lift_flags;
-  cv::Mat filled, level;  // fill_depth's outputs
+  cv::Mat filled, level;  // the fill's results: the tracker's buffers, until its next frame
   double flow_ms = 0, fill_ms = 0, lift_ms = 0;
 };
-void track_pixels(OpticalFlow& flow, const cv::Mat& rgb, const cv::Mat& depth,
-                  const Eigen::Ref<const RowMatrixX2d>& uv_ref, double fb_threshold,
-                  int smooth_iterations, int max_fill_level, const PinholeIntrinsics& K,
-                  TrackedPixels& out);
+
+// The tracking stage's state from frame to frame: the flow against its reference and the depth
+// fill's buffers.
+class PixelTracker {
+ public:
+  explicit PixelTracker(const FlowParams& params) : flow_(params) {}
+  OpticalFlow& flow() { return flow_; }
+  const OpticalFlow& flow() const { return flow_; }
+  void track(const cv::Mat& rgb, const cv::Mat& depth, const Eigen::Ref<const RowMatrixX2d>& uv_ref,
+             double fb_threshold, int smooth_iterations, int max_fill_level,
+             const PinholeIntrinsics& K, TrackedPixels& out);
+
+ private:
+  OpticalFlow flow_;
+  DepthFill fill_;
+};
 
 }  // namespace bubble

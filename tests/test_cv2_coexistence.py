@@ -19,7 +19,7 @@ shifted = np.roll(img, 2, axis=1)
 pip_flow = cv2.DISOpticalFlow_create(2).calc(img, shifted, None)
 rgb0 = np.ascontiguousarray(np.dstack([img] * 3))
 rgb1 = np.ascontiguousarray(np.dstack([shifted] * 3))
-of = _core._OpticalFlow(method=1, dis_preset=2, pyr_scale=0.5, levels=3, winsize=15,
+of = _core._PixelTracker(method=1, dis_preset=2, pyr_scale=0.5, levels=3, winsize=15,
                         iterations=3, poly_n=5, poly_sigma=1.2, gaussian=False, scale=1.0,
                         forward_backward=False)
 of.set_reference(rgb0, 0, 0, 160, 120)

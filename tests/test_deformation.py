@@ -171,7 +171,9 @@ def test_identical_frames_give_zero_displacement(scene):
 def test_one_call_tracking_equals_the_separate_steps_bit_for_bit(scene, distorted):
     """The tracker's one C++ call (depth fill beside the flow) gives exactly what flow,
     sampling, hole filling and lifting called one after the other give: a moved texture, a
-    dented surface with 30 % holes, and a camera with and without lens distortion."""
+    dented surface with 30 % holes, and a camera with and without lens distortion. The frame
+    before it has other holes: the fill's buffers, kept from frame to frame, carry nothing
+    over."""
     cam, depth, img, ref, mesh = scene
     if distorted:
         cam = replace(cam, distortion=(0.05, -0.02, 0.001, 0.0005, 0.0))
@@ -180,10 +182,14 @@ def test_one_call_tracking_equals_the_separate_steps_bit_for_bit(scene, distorte
     cur_depth[blob_mask(cam.height, cam.width, 0.30)] = 0.0
     cur = Frame(warp(img, F), cur_depth, 100000.0)
     tr = DeformationTracker(mesh, cam, ref)
+    before = depth.copy()
+    before[blob_mask(cam.height, cam.width, 0.10, seed=7)] = 0.0
+    tr.track(Frame(img, before, 100000.0))
+    tr.reset_history()
     d = tr.track(cur)
     s = tr.settings
-    tr._flow.compute(np.ascontiguousarray(cur.rgb))
-    flow, _fb, flags = tr._flow.sample(tr.uv_ref, s.fb_threshold_px)
+    tr._pixel_tracker.compute(np.ascontiguousarray(cur.rgb))
+    flow, _fb, flags = tr._pixel_tracker.sample(tr.uv_ref, s.fb_threshold_px)
     flow = np.asarray(flow)
     flags = np.asarray(flags, np.uint8).copy()
     flags[~tr.visible] |= FLAG_OUTSIDE_IMAGE
@@ -441,16 +447,16 @@ def test_core_input_errors_are_value_errors():
         forward_backward=False,
     )
     with pytest.raises(ValueError, match="DIS preset"):
-        _core._OpticalFlow(method=1, dis_preset=7, **kw)
+        _core._PixelTracker(method=1, dis_preset=7, **kw)
     with pytest.raises(ValueError, match="poly_n"):
-        _core._OpticalFlow(method=0, dis_preset=0, **{**kw, "poly_n": 6})
+        _core._PixelTracker(method=0, dis_preset=0, **{**kw, "poly_n": 6})
     for stride in (0, 9):  # 8 px patches
         with pytest.raises(ValueError, match="patch stride"):
-            _core._OpticalFlow(method=1, dis_preset=0, dis_patch_stride=stride, **kw)
+            _core._PixelTracker(method=1, dis_preset=0, dis_patch_stride=stride, **kw)
     for window in (3, 4, 16):  # odd and >= 5, or 0
         with pytest.raises(ValueError, match="refinement window"):
-            _core._OpticalFlow(method=1, dis_preset=0, refine_window=window, **kw)
-    of = _core._OpticalFlow(method=1, dis_preset=0, **kw)
+            _core._PixelTracker(method=1, dis_preset=0, refine_window=window, **kw)
+    of = _core._PixelTracker(method=1, dis_preset=0, **kw)
     with pytest.raises(ValueError, match="no reference"):
         of.compute(np.zeros((20, 20, 3), np.uint8))
     of.set_reference(np.zeros((20, 20, 3), np.uint8), 0, 0, 20, 20)

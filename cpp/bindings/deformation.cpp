@@ -57,7 +57,7 @@ py::array_t<T> mat_to_array(const cv::Mat& m, int channels) {
 }  // namespace
 
 void bind_deformation(py::module_& m) {
-  py::class_<bubble::OpticalFlow>(m, "_OpticalFlow")
+  py::class_<bubble::PixelTracker>(m, "_PixelTracker")
       .def(py::init([](int method, int dis_preset, double pyr_scale, int levels, int winsize,
                        int iterations, int poly_n, double poly_sigma, bool gaussian, double scale,
                        bool forward_backward, int dis_finest_scale, int dis_refinement_iterations,
@@ -73,7 +73,7 @@ void bind_deformation(py::module_& m) {
              p.dis_refinement_iterations = dis_refinement_iterations;
              p.dis_patch_stride = dis_patch_stride;
              p.refine_window = refine_window;
-             return new bubble::OpticalFlow(p);
+             return new bubble::PixelTracker(p);
            }),
            py::arg("method"), py::arg("dis_preset"), py::arg("pyr_scale"), py::arg("levels"),
            py::arg("winsize"), py::arg("iterations"), py::arg("poly_n"), py::arg("poly_sigma"),
@@ -82,23 +82,24 @@ void bind_deformation(py::module_& m) {
            py::arg("dis_patch_stride") = -1, py::arg("refine_window") = 0)
       .def(
           "set_reference",
-          [](bubble::OpticalFlow& self, const U8Image& rgb, int x, int y, int w, int h) {
+          [](bubble::PixelTracker& self, const U8Image& rgb, int x, int y, int w, int h) {
             cv::Mat img = rgb_view(rgb);
             py::gil_scoped_release release;
-            self.set_reference(img, cv::Rect(x, y, w, h));
+            self.flow().set_reference(img, cv::Rect(x, y, w, h));
           },
           py::arg("rgb"), py::arg("x"), py::arg("y"), py::arg("w"), py::arg("h"))
       .def(
           "compute",
-          [](bubble::OpticalFlow& self, const U8Image& rgb) {
+          [](bubble::PixelTracker& self, const U8Image& rgb) {
             cv::Mat img = rgb_view(rgb);
             py::gil_scoped_release release;
-            self.compute(img);
+            self.flow().compute(img);
           },
           py::arg("rgb"))
       .def(
           "sample",
-          [](const bubble::OpticalFlow& self, const ArrDCast& uv, double fb_threshold) {
+          [](const bubble::PixelTracker& tracker, const ArrDCast& uv, double fb_threshold) {
+            const bubble::OpticalFlow& self = tracker.flow();
             auto pts = uv_view(uv);
             RowMatrixX2d flow(pts.rows(), 2);
             Eigen::VectorXd fb(pts.rows());
@@ -113,14 +114,14 @@ void bind_deformation(py::module_& m) {
           },
           py::arg("uv"), py::arg("fb_threshold"))
       .def("dense",
-           [](const bubble::OpticalFlow& self) {
-             const bubble::FlowField& f = self.forward();
+           [](const bubble::PixelTracker& self) {
+             const bubble::FlowField& f = self.flow().forward();
              bubble::require(!f.empty(), "no flow has been computed");
              return std::make_tuple(mat_to_array<float>(f.flow, 2), f.x0, f.y0, f.scale);
            })
       .def(
           "track",
-          [](bubble::OpticalFlow& self, const U8Image& rgb, const F32Image& depth,
+          [](bubble::PixelTracker& self, const U8Image& rgb, const F32Image& depth,
              const ArrDCast& uv_ref, double fb_threshold, int smooth_iterations, int max_fill_level,
              double fx, double fy, double cx, double cy, bool want_filled) {
             cv::Mat img = rgb_view(rgb);
@@ -129,8 +130,8 @@ void bind_deformation(py::module_& m) {
             bubble::TrackedPixels out;
             {
               py::gil_scoped_release release;
-              bubble::track_pixels(self, img, d, pts, fb_threshold, smooth_iterations,
-                                   max_fill_level, bubble::PinholeIntrinsics{fx, fy, cx, cy}, out);
+              self.track(img, d, pts, fb_threshold, smooth_iterations, max_fill_level,
+                         bubble::PinholeIntrinsics{fx, fy, cx, cy}, out);
             }
             py::object filled = py::none();
             if (want_filled) filled = mat_to_array<float>(out.filled, 1);
@@ -144,8 +145,8 @@ void bind_deformation(py::module_& m) {
           py::arg("rgb"), py::arg("depth"), py::arg("uv_ref"), py::arg("fb_threshold"),
           py::arg("smooth_iterations"), py::arg("max_fill_level"), py::arg("fx"), py::arg("fy"),
           py::arg("cx"), py::arg("cy"), py::arg("want_filled"))
-      .def_property_readonly("roi", [](const bubble::OpticalFlow& self) {
-        const cv::Rect r = self.roi();
+      .def_property_readonly("roi", [](const bubble::PixelTracker& self) {
+        const cv::Rect r = self.flow().roi();
         return std::make_tuple(r.x, r.y, r.width, r.height);
       });
 

@@ -435,7 +435,7 @@ class DeformationTracker(NodeTracker):
         self.visible = inside
         ray = self.x_ref - camera.pose_matrix[:3, 3]
         self.rays = ray / np.maximum(np.linalg.norm(ray, axis=1), 1e-12)[:, None]
-        self._flow: Any = None
+        self._pixel_tracker: Any = None
         self.roi = _roi(self.uv_ref, inside, camera, self.settings.margin_px)
         self.set_reference(reference)
 
@@ -452,8 +452,8 @@ class DeformationTracker(NodeTracker):
                 f"reference depth size {reference.depth.shape[1]} x {reference.depth.shape[0]} "
                 f"differs from the camera's {camera.width} x {camera.height}"
             )
-        if self._flow is None:
-            self._flow = _core._OpticalFlow(
+        if self._pixel_tracker is None:
+            self._pixel_tracker = _core._PixelTracker(
                 method=1 if s.method in _DIS_PRESETS else 0,
                 dis_preset=_DIS_PRESETS.get(s.method, 2),
                 scale=s.scale,
@@ -466,7 +466,7 @@ class DeformationTracker(NodeTracker):
                 refine_window=s.refine_window_px,
                 **s.farneback_params(),
             )
-        self._flow.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
+        self._pixel_tracker.set_reference(np.ascontiguousarray(reference.rgb), *self.roi)
         self.reference = reference
         self.reset_history()
 
@@ -483,7 +483,7 @@ class DeformationTracker(NodeTracker):
         frame.validate(self.camera, need_images=True)
         cam, s = self.camera, self.settings
         t0 = time.perf_counter()
-        flow, flags, pinhole, lift_flags, filled, ms = self._flow.track(
+        flow, flags, pinhole, lift_flags, filled, ms = self._pixel_tracker.track(
             np.ascontiguousarray(frame.rgb),
             frame.depth,
             self.uv_ref,
