@@ -17,6 +17,8 @@ constexpr double kRefineEpsilon = 0.03;  // working pixels
 constexpr double kRefineMinEigen = 1e-4;
 // A refinement that moves further from the dense flow has locked onto another texture.
 constexpr double kMaxRefineStepPx = 2.0;  // full-resolution pixels
+// The smallest image side cv::DISOpticalFlow accepts.
+constexpr int kDisMinSide = 12;
 
 }  // namespace
 
@@ -62,6 +64,8 @@ OpticalFlow::OpticalFlow(const FlowParams& params) : params_(params) {
               "DIS patch stride must be between 1 and the patch size");
       dis_->setPatchStride(params.dis_patch_stride);
     }
+    finest_scale_ = dis_->getFinestScale();
+    require(finest_scale_ >= 0 && finest_scale_ <= 8, "DIS finest scale must be 0..8");
   } else {
     const FarnebackParams& f = params.farneback;
     require(f.pyr_scale > 0.0 && f.pyr_scale < 1.0, "Farneback pyr_scale must be in (0, 1)");
@@ -86,6 +90,16 @@ cv::Mat OpticalFlow::prepare(const cv::Mat& rgb) const {
   return grey;
 }
 
+// The working image reduced to DIS's finest level as DIS itself reduces it (sizes rounded
+// down, area averaging), so that its pyramid and field are the same as on the working image.
+cv::Mat OpticalFlow::dense_input(const cv::Mat& working) const {
+  if (dense_factor_ == 1) return working;
+  const int f = dense_factor_;
+  cv::Mat small;
+  cv::resize(working, small, cv::Size(working.cols / f, working.rows / f), 0, 0, cv::INTER_AREA);
+  return small;
+}
+
 void OpticalFlow::set_reference(const cv::Mat& rgb, cv::Rect roi) {
   require(rgb.type() == CV_8UC3, "reference image must be 8-bit RGB (H x W x 3 uint8)");
   size_ = rgb.size();
@@ -93,6 +107,15 @@ void OpticalFlow::set_reference(const cv::Mat& rgb, cv::Rect roi) {
   require(roi_.width >= 8 && roi_.height >= 8,
           "flow region of interest is empty or smaller than 8 x 8 pixels");
   reference_ = prepare(rgb);
+  if (dis_) {
+    // DIS refuses images under 12 pixels; an image that small it reduces itself (the same
+    // pyramid, from the same one-step reduction).
+    const int f = 1 << finest_scale_;
+    const bool reduce = reference_.cols / f >= kDisMinSide && reference_.rows / f >= kDisMinSide;
+    dense_factor_ = reduce ? f : 1;
+    dis_->setFinestScale(reduce ? 0 : finest_scale_);
+  }
+  dense_reference_ = dense_input(reference_);
   reference_pyramid_.clear();
   current_pyramid_.clear();
   if (params_.refine_window > 0) {
@@ -120,17 +143,19 @@ void OpticalFlow::compute(const cv::Mat& rgb) {
   require(!reference_.empty(), "optical flow has no reference image");
   require(rgb.size() == size_, "current image size differs from the reference image size");
   const cv::Mat cur = prepare(rgb);
+  const cv::Mat dense_cur = dense_input(cur);
+  const double field_scale = params_.scale / dense_factor_;
   cv::Mat fwd;
-  run(reference_, cur, fwd);
-  forward_ = FlowField{fwd, roi_.x, roi_.y, params_.scale};
+  run(dense_reference_, dense_cur, fwd);
+  forward_ = FlowField{fwd, roi_.x, roi_.y, field_scale};
   if (params_.refine_window > 0) {
     const cv::Size window(params_.refine_window, params_.refine_window);
     cv::buildOpticalFlowPyramid(cur, current_pyramid_, window, 0, false);
   }
   if (params_.forward_backward) {
     cv::Mat bwd;
-    run(cur, reference_, bwd);
-    backward_ = FlowField{bwd, roi_.x, roi_.y, params_.scale};
+    run(dense_cur, dense_reference_, bwd);
+    backward_ = FlowField{bwd, roi_.x, roi_.y, field_scale};
   } else {
     backward_ = FlowField();
   }
