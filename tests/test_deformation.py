@@ -59,6 +59,27 @@ def _warp_rms(scene, settings: FlowSettings) -> tuple[float, np.ndarray]:
     return float(np.sqrt(np.mean(err**2))), flow
 
 
+def _pixel_tracker(**overrides):
+    """The C++ tracker (flow + depth fill) with DIS ultrafast and the given overrides."""
+    from bubble_rt import _core
+
+    kw = dict(
+        method=1,
+        dis_preset=0,
+        pyr_scale=0.5,
+        levels=3,
+        winsize=15,
+        iterations=3,
+        poly_n=5,
+        poly_sigma=1.2,
+        gaussian=False,
+        scale=1.0,
+        forward_backward=False,
+        refine_window=15,
+    )
+    return _core._PixelTracker(**{**kw, **overrides})
+
+
 def test_flow_at_nodes_farneback_within_0_3_px(scene):
     err = flow_error(scene, "farneback")
     assert err.max() < 0.3
@@ -435,28 +456,17 @@ def test_real_untouched_frames_give_no_contact_and_small_force():
 def test_core_input_errors_are_value_errors():
     from bubble_rt import _core
 
-    kw = dict(
-        pyr_scale=0.5,
-        levels=3,
-        winsize=15,
-        iterations=3,
-        poly_n=5,
-        poly_sigma=1.2,
-        gaussian=False,
-        scale=1.0,
-        forward_backward=False,
-    )
     with pytest.raises(ValueError, match="DIS preset"):
-        _core._PixelTracker(method=1, dis_preset=7, **kw)
+        _pixel_tracker(dis_preset=7)
     with pytest.raises(ValueError, match="poly_n"):
-        _core._PixelTracker(method=0, dis_preset=0, **{**kw, "poly_n": 6})
+        _pixel_tracker(method=0, poly_n=6)
     for stride in (0, 9):  # 8 px patches
         with pytest.raises(ValueError, match="patch stride"):
-            _core._PixelTracker(method=1, dis_preset=0, dis_patch_stride=stride, **kw)
+            _pixel_tracker(dis_patch_stride=stride)
     for window in (3, 4, 16):  # odd and >= 5, or 0
         with pytest.raises(ValueError, match="refinement window"):
-            _core._PixelTracker(method=1, dis_preset=0, refine_window=window, **kw)
-    of = _core._PixelTracker(method=1, dis_preset=0, **kw)
+            _pixel_tracker(refine_window=window)
+    of = _pixel_tracker()
     with pytest.raises(ValueError, match="no reference"):
         of.compute(np.zeros((20, 20, 3), np.uint8))
     of.set_reference(np.zeros((20, 20, 3), np.uint8), 0, 0, 20, 20)
@@ -484,3 +494,42 @@ def test_flow_only_over_the_mesh_roi():
     d = tr.track(Frame(warp(img, F), depth, 1e5))
     assert d.valid_fraction == 1.0
     assert np.abs(d.flow - true_flow_at(F, tr.uv_ref)).max() < 0.3
+
+
+def test_the_fill_kept_from_frame_to_frame_equals_a_fresh_one(scene):
+    """The tracker's depth fill reuses its buffers: after frames with other holes, with none
+    and with no valid pixel at all, each frame's filled depth is the one-shot fill's, bit for
+    bit, everywhere (not only at the nodes)."""
+    from bubble_rt import _core
+
+    cam, depth, img, _ref, _mesh = scene
+    rgb = np.ascontiguousarray(img)
+    tr = _pixel_tracker()
+    tr.set_reference(rgb, 0, 0, cam.width, cam.height)
+    uv = np.array([[100.0, 100.0], [320.0, 240.0]])
+    smoothing, max_level = 4, 3
+    some = depth.copy()
+    some[blob_mask(cam.height, cam.width, 0.30, seed=3)] = 0.0
+    other = depth.copy()
+    other[blob_mask(cam.height, cam.width, 0.05, seed=4)] = np.nan
+    for d in (some, np.zeros_like(depth), other, depth, some):
+        *_, filled, _ms = tr.track(rgb, d, uv, 1.0, smoothing, max_level, 1.0, 1.0, 0.0, 0.0, True)
+        fresh, _level = _core._fill_depth(d, smoothing, max_level + 1)
+        assert np.array_equal(filled, fresh)
+
+
+def test_dis_field_stays_at_its_finest_level_and_a_tiny_image_still_tracks():
+    """DIS is given images already reduced to its finest level (ultrafast: level 2), and its
+    field is kept there; an image under 12 px at that level (DIS refuses those) is reduced by
+    DIS itself. A 2 px shift reads 2 px either way."""
+    for h, w, factor in ((120, 160, 4), (40, 36, 1)):
+        grey = texture(h, w)[..., 0]
+        ref = np.ascontiguousarray(np.dstack([grey] * 3))
+        cur = np.ascontiguousarray(np.roll(ref, 2, axis=1))
+        tr = _pixel_tracker(refine_window=0)
+        tr.set_reference(ref, 0, 0, w, h)
+        tr.compute(cur)
+        field, _x0, _y0, scale = tr.dense()
+        assert field.shape[:2] == (h // factor, w // factor) and scale == 1.0 / factor
+        flow, _fb, flags = tr.sample(np.array([[w / 2, h / 2]]), 1.0)
+        assert flags[0] == 0 and abs(flow[0, 0] - 2.0) < 0.5 and abs(flow[0, 1]) < 0.5
