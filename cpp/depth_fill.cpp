@@ -142,13 +142,11 @@ long DepthFill::load_base(const cv::Mat& depth) {
 // Push down to a single pixel; returns the number of levels.
 int DepthFill::build_pyramid() {
   int n = 1;
-  for (;; ++n) {
-    const Level& fine = pyramid_[n - 1];
-    if (fine.d.rows == 1 && fine.d.cols == 1) return n;
+  for (; pyramid_[n - 1].d.rows > 1 || pyramid_[n - 1].d.cols > 1; ++n) {
     if (static_cast<int>(pyramid_.size()) == n) pyramid_.emplace_back();
-    const Level& f = pyramid_[n - 1];  // emplace_back may have moved the levels
-    push(f.d, f.w, pyramid_[n].d, pyramid_[n].w);
+    push(pyramid_[n - 1].d, pyramid_[n - 1].w, pyramid_[n].d, pyramid_[n].w);
   }
+  return n;
 }
 
 // Provenance: the first level at which a pixel's block held measured depth, propagated from
