@@ -17,7 +17,14 @@ from bubble_rt.estimation.deformation import (
     Reference,
 )
 from bubble_rt.estimation.fitting import fit_mesh
-from bubble_rt.estimation.lifting import harmonic_fill, lift, lift_pixels, mesh_laplacian
+from bubble_rt.estimation.lifting import (
+    harmonic_fill,
+    lift,
+    lift_pixels,
+    mesh_laplacian,
+    neighbour_outliers,
+    neighbour_table,
+)
 from bubble_rt.frames import Frame, FrameError
 from bubble_rt.mesh import Mesh
 from scipy.ndimage import map_coordinates
@@ -337,6 +344,53 @@ def test_harmonic_fill_reproduces_linear_field_and_zeroes_isolated_nodes():
     assert np.isfinite(filled).all()
     none = harmonic_fill(L, np.full((mesh.n_nodes, 3), np.nan), np.zeros(mesh.n_nodes, bool))
     assert (none == 0).all()
+
+
+def _numpy_neighbour_outliers(U, measured, nb, tol):
+    """The rule in NumPy (the implementation before cpp/neighbour_median.cpp): the median of
+    the measured neighbours by sorting with NaN last."""
+    ok = (nb >= 0) & measured[np.maximum(nb, 0)]
+    G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
+    count = ok.sum(axis=1)
+    G.sort(axis=1)
+    rows = np.arange(len(U))
+    lo = G[rows, np.maximum(count - 1, 0) // 2]
+    hi = G[rows, np.maximum(count, 1) // 2 - (count == 0)]
+    dev = np.linalg.norm(U - np.nan_to_num(0.5 * (lo + hi)), axis=1)
+    return measured & (count >= 2) & (dev > tol)
+
+
+def test_neighbour_outliers_find_spikes_and_match_the_numpy_median_rule():
+    mesh = Mesh.preset("coarse")
+    nb = neighbour_table(mesh_laplacian(mesh))
+    rng = np.random.default_rng(3)
+    V = mesh.vertices
+    smooth = 2e-3 * np.column_stack([np.sin(80 * V[:, 0]), np.cos(60 * V[:, 1]), V[:, 0] * 40])
+    spikes = rng.choice(mesh.n_nodes, 12, replace=False)
+    U = smooth.copy()
+    U[spikes, 2] += 5e-3
+    # a spike next to another one still stands 5 mm from the median of its neighbours
+    found = neighbour_outliers(U, np.ones(mesh.n_nodes, bool), nb, 2e-3)
+    assert set(np.flatnonzero(found)) == set(spikes.tolist())
+    for trial in range(20):  # odd and even neighbour counts, sparse and dense measurement
+        measured = rng.random(mesh.n_nodes) < rng.uniform(0.2, 1.0)
+        U = smooth + rng.normal(scale=1e-3, size=smooth.shape)
+        tol = rng.uniform(0.5e-3, 3e-3)
+        got = neighbour_outliers(U, measured, nb, tol)
+        assert got.dtype == bool and got.shape == (mesh.n_nodes,)
+        assert np.array_equal(got, _numpy_neighbour_outliers(U, measured, nb, tol)), trial
+
+
+def test_neighbour_outliers_bad_input_is_a_value_error():
+    from bubble_rt import _core
+
+    U, measured = np.zeros((3, 3)), np.ones(3, bool)
+    with pytest.raises(ValueError, match="out of range"):
+        _core._neighbour_outliers(U, measured, np.array([[1, 3], [0, 2], [0, 1]]), 1e-3)
+    with pytest.raises(ValueError, match="N = 3"):
+        _core._neighbour_outliers(U, np.ones(4, bool), np.zeros((3, 2), np.int64), 1e-3)
+    with pytest.raises(ValueError, match="N x 3"):
+        _core._neighbour_outliers(np.zeros((3, 2)), measured, np.zeros((3, 2), np.int64), 1e-3)
 
 
 def test_reference_capture_averages_valid_depth_only():

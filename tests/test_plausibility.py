@@ -197,6 +197,35 @@ def test_frozen_images_are_marked_degraded():
 
 
 @needs_real
+def test_frozen_images_with_nan_depth_holes_are_marked_degraded():
+    # A driver that marks missing depth with NaN repeats its NaN when it freezes; an
+    # elementwise comparison never finds NaN equal to itself and missed the freeze.
+    real, _, _ = _real()
+    depth = real[5].depth.astype(np.float32)
+    depth[:40, :40] = np.nan
+    frozen = [replace(real[5], depth=depth, t=real[5].t + k / 30, index=5 + k) for k in range(8)]
+    _, got = _run(frozen)
+    n = CFG.plausibility.frozen_frames
+    flagged = [any("frozen" in r for r in e.degraded_reasons) for e in got]
+    assert flagged == [False] * n + [True] * (len(frozen) - n)
+
+
+def test_images_differing_in_one_late_byte_are_not_identical():
+    from bubble_rt.estimation.plausibility import _images_equal
+
+    a = Frame(np.zeros((48, 64, 3), np.uint8), np.full((48, 64), 0.1, np.float32), 0.0)
+    rgb, depth = a.rgb.copy(), a.depth.copy()
+    rgb[-1, -1, -1] = 1
+    depth[-1, -1] = np.nextafter(depth[-1, -1], np.float32(1))  # one ulp
+    assert _images_equal(a, replace(a, rgb=a.rgb.copy(), depth=a.depth.copy()))
+    assert not _images_equal(a, replace(a, rgb=rgb))
+    assert not _images_equal(a, replace(a, depth=depth))
+    assert not _images_equal(a, replace(a, depth=None))
+    narrow = replace(a, rgb=a.rgb[:, :32].copy(), depth=a.depth[:, :32].copy())
+    assert not _images_equal(a, narrow)  # another shape
+
+
+@needs_real
 def test_depth_scaled_by_1000_is_marked_degraded():
     real, _, _ = _real()
     _, got = _run([replace(f, depth=f.depth * 1000) for f in real[5:8]])

@@ -11,6 +11,7 @@
 #include "depth_fill.h"
 #include "errors.h"
 #include "lifting.h"
+#include "neighbour_median.h"
 #include "numpy_views.h"
 #include "optical_flow.h"
 
@@ -22,6 +23,7 @@ namespace {
 
 using U8Image = py::array_t<std::uint8_t, py::array::c_style>;
 using F32Image = py::array_t<float, py::array::c_style | py::array::forcecast>;
+using bubble::bindings::ArrD;
 using bubble::bindings::ArrDCast;
 using FlagVector = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, 1>;
 
@@ -170,6 +172,22 @@ void bind_deformation(py::module_& m) {
                                mat_to_array<std::uint8_t>(level, 1));
       },
       py::arg("depth"), py::arg("smooth_iterations") = 4, py::arg("smooth_max_level") = 254);
+
+  m.def(
+      "_neighbour_outliers",
+      [](const ArrD& U, const py::array_t<bool, py::array::c_style>& measured,
+         const py::array_t<std::int64_t, py::array::c_style>& neighbours, double tol) {
+        const auto u = bubble::bindings::map_n3(U, "U");
+        bubble::require(measured.ndim() == 1, "measured must be 1-D");
+        bubble::require(neighbours.ndim() == 2, "neighbours must be N x W");
+        const Eigen::Map<const bubble::BoolVector> meas(measured.data(), measured.shape(0));
+        const Eigen::Map<const bubble::NeighbourTable> nb(neighbours.data(), neighbours.shape(0),
+                                                          neighbours.shape(1));
+        py::gil_scoped_release release;
+        return bubble::neighbour_outliers(u, meas, nb, tol);
+      },
+      py::arg("U").noconvert(), py::arg("measured").noconvert(), py::arg("neighbours").noconvert(),
+      py::arg("tol"));
 
   m.def(
       "_lift_pixels",

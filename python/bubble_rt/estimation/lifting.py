@@ -119,20 +119,21 @@ def neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:
 def neighbour_outliers(
     U: NDArray, measured: NDArray[np.bool_], nb: NDArray[np.intp], tol: float
 ) -> NDArray[np.bool_]:
-    """Measured nodes whose U is further than ``tol`` from the component-wise median of their
-    measured neighbours (needs at least two of them)."""
-    ok = (nb >= 0) & measured[np.maximum(nb, 0)]
-    G = np.where(ok[:, :, None], U[np.maximum(nb, 0)], np.nan)
-    count = ok.sum(axis=1)
-    enough = count >= 2
-    # nanmedian by sorting (NaNs sort last): several times faster than np.nanmedian here.
-    G.sort(axis=1)
-    rows = np.arange(len(U))
-    lo = G[rows, np.maximum(count - 1, 0) // 2]
-    hi = G[rows, np.maximum(count, 1) // 2 - (count == 0)]
-    med = 0.5 * (lo + hi)
-    dev = np.linalg.norm(U - np.nan_to_num(med), axis=1)
-    return measured & enough & (dev > tol)
+    """Measured nodes whose U (N x 3, m) is further than ``tol`` (m) from the component-wise
+    median of their measured neighbours (needs at least two of them); ``nb`` is
+    ``neighbour_table``'s N x W table. C++ (cpp/neighbour_median.h): the NumPy version, a
+    gather and sort of N x W x 3 values, cost a third of a millisecond per frame."""
+    from bubble_rt import _core
+
+    return np.asarray(
+        _core._neighbour_outliers(
+            np.ascontiguousarray(U, dtype=np.float64),
+            np.ascontiguousarray(measured, dtype=bool),
+            np.ascontiguousarray(nb, dtype=np.int64),
+            float(tol),
+        ),
+        dtype=bool,
+    )
 
 
 def lift_pixels(
