@@ -43,14 +43,15 @@ def harmonic_fill(
         return out
     iu = np.flatnonzero(unknown)
     ik = np.flatnonzero(known)
-    rhs = -(L[iu][:, ik] @ out[ik])
+    Lu = L[iu]  # the unknown rows, sliced once for both column sets
+    rhs = -(Lu[:, ik] @ out[ik])
     if len(iu) <= _DENSE_FILL_MAX:
         # A few flagged nodes per frame is the usual case: a dense solve is microseconds where
         # SciPy's sparse setup costs about a millisecond.
-        Luu_d = L[iu][:, iu].toarray() + 1e-9 * np.eye(len(iu))
+        Luu_d = Lu[:, iu].toarray() + 1e-9 * np.eye(len(iu))
         sol = np.linalg.solve(Luu_d, rhs.reshape(len(iu), -1))
     else:
-        Luu = L[iu][:, iu] + sp.identity(len(iu), format="csr") * 1e-9
+        Luu = Lu[:, iu] + sp.identity(len(iu), format="csr") * 1e-9
         sol = spla.spsolve(Luu.tocsc(), rhs)
     out[iu] = np.asarray(sol).reshape(len(iu), -1)
     out[~np.isfinite(out)] = 0.0
