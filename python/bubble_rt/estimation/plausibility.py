@@ -144,6 +144,10 @@ def _images_equal(a: Frame, b: Frame) -> bool:
     return all(_bit_identical(x, y) for x, y in pairs)
 
 
+#: bytes compared before the rest of an image (two rows of a 640-pixel RGB image)
+_HEAD_BYTES = 4096
+
+
 def _bit_identical(x: Any, y: Any) -> bool:
     """Same shape, dtype and bytes (None equals None). A frozen source repeats its bytes, NaN
     holes included (np.array_equal never finds NaN equal to itself). A live camera's noise
@@ -156,10 +160,6 @@ def _bit_identical(x: Any, y: Any) -> bool:
     xb, yb = (np.ascontiguousarray(a).reshape(-1).view(np.uint8) for a in (x, y))
     head = min(xb.size, _HEAD_BYTES)
     return bool(np.array_equal(xb[:head], yb[:head]) and np.array_equal(xb[head:], yb[head:]))
-
-
-#: bytes compared before the rest of an image (two rows of a 640-pixel RGB image)
-_HEAD_BYTES = 4096
 
 
 def noisy_source(frames: list[Frame]) -> bool:
