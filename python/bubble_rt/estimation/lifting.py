@@ -44,7 +44,7 @@ def harmonic_fill(
     iu = np.flatnonzero(unknown)
     # L[iu][:, known] @ out[known] as one product over all of L: SciPy's fancy slicing of the
     # rows and columns took most of a millisecond per frame on the 749-node mesh.
-    rhs = -(L @ np.where(known[:, None] if out.ndim == 2 else known, out, 0.0))[iu]
+    rhs = -(L @ np.where(known[:, None], out, 0.0))[iu]
     if len(iu) <= _DENSE_FILL_MAX:
         # A few flagged nodes per frame is the usual case: a dense solve is microseconds where
         # SciPy's sparse setup costs about a millisecond.
