@@ -10,7 +10,14 @@ import pytest
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.io import protocol
 from bubble_rt.io.client import Controller, Subscriber
-from daemon_fakes import FakeProcessor, ScriptedCamera, constant_pressure, fake_config, status_of
+from daemon_fakes import (
+    FakeProcessor,
+    ScriptedCamera,
+    constant_pressure,
+    fake_config,
+    start,
+    status_of,
+)
 from waiting import wait_for
 
 pytestmark = pytest.mark.timeout(60)
@@ -114,3 +121,25 @@ def test_source_that_keeps_failing_is_degraded_with_reason_and_counted_no_log_pe
     lines = [r for r in caplog.records if "deformation" in r.getMessage()]
     assert 1 <= len(lines) <= 2, [r.getMessage() for r in lines]  # not one per frame
     assert not any(r.exc_info for r in caplog.records)
+
+
+def test_a_new_reason_is_published_before_the_status_period_ends():
+    # A status period far longer than the test: only the reason's own refresh can publish the
+    # stall's growing age (and the reference capture's progress) while the state stays the same.
+    d, cam = start(fake_config(**{"network.status_period_s": 60.0}))
+    try:
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            assert wait_for(lambda: isinstance(sub.recv(0.5), protocol.ForceFrameData))
+            cam.pause.set()
+            reasons: list[str] = []
+
+            def two_stall_reasons() -> bool:
+                m = sub.recv(0.1)
+                if isinstance(m, protocol.StatusData) and m.state == "degraded":
+                    reasons.append(m.reason)
+                return len(set(reasons)) >= 2
+
+            assert wait_for(two_stall_reasons, timeout=5.0)
+        assert all("camera stalled" in r for r in reasons), reasons
+    finally:
+        d.stop()

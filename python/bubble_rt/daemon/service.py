@@ -52,6 +52,8 @@ from bubble_rt.io.mcap import TOPIC_MESH
 #: Largest message the control socket accepts at the transport level (ZMQ_MAXMSGSIZE; bigger:
 #: ZeroMQ drops the connection, see ``protocol.MAX_MESSAGE_BYTES``).
 CONTROL_MAX_TRANSPORT_BYTES = protocol.MAX_MESSAGE_BYTES
+#: Shortest time (s) between two status messages that differ only in their reason.
+REASON_REFRESH_S = 0.1
 
 
 # ------------------------------------------------------------------------ daemon
@@ -533,7 +535,12 @@ class Daemon:
                     self._answer(frames)
             now = time.monotonic()
             state = self.state()
-            if now >= next_status or state[0] != (self._last_state or (None,))[0]:
+            last = self._last_state or (None, None)
+            # A new state goes out at once; a new reason within the state (reference capture
+            # -> waiting for the first force frame, a stall's growing age) within
+            # REASON_REFRESH_S, so a subscriber never reads a stale reason for a whole period.
+            reason_due = state[1] != last[1] and now >= next_status - period + REASON_REFRESH_S
+            if now >= next_status or state[0] != last[0] or reason_due:
                 self._last_state = state
                 next_status = now + period
                 msg = self.status_message()
