@@ -4,19 +4,24 @@ slow subscribers, late subscribers, a port in use, single-stage processing, drop
 
 from __future__ import annotations
 
+import queue
 import threading
+from typing import Any
 
 import numpy as np
 import pytest
 import zmq
 from bubble_rt.daemon.service import Daemon, DaemonError
+from bubble_rt.daemon.sources import IterableCamera
 from bubble_rt.frames import Frame
 from bubble_rt.io.client import Subscriber
 from daemon_fakes import (
+    CAM,
     FakeProcessor,
     ScriptedCamera,
     constant_pressure,
     fake_config,
+    make_frame,
     refused_at_load,
     start,
     start_daemon,
@@ -204,4 +209,66 @@ def test_frames_replaced_while_a_tare_rebuilds_the_estimator_are_not_drops():
         proc.delay_s = 0.05
         assert wait_for(lambda: d.frames_dropped > 15)
     finally:
+        d.stop()
+
+
+class _HeldProcessor(FakeProcessor):
+    """A FakeProcessor whose stage two waits at ``hold`` (once ``armed``) until ``release``."""
+
+    def __init__(self, *a: Any) -> None:
+        super().__init__(*a)
+        self.armed, self.held, self.release = (
+            threading.Event(),
+            threading.Event(),
+            threading.Event(),
+        )
+
+    def stage2(self, frame: Frame, data: Any) -> Any:
+        if self.armed.is_set() and not self.release.is_set():
+            self.held.set()
+            self.release.wait(10.0)
+        return super().stage2(frame, data)
+
+
+def test_one_slow_solve_delays_the_next_frames_instead_of_dropping_them():
+    # Frames fed one by one: the camera, stage one and stage two are gated, so this is the
+    # same on any machine. While stage two is held on frame B, frames C and D pass stage one
+    # and wait; once it is released all of them are published and nothing is dropped.
+    feed: queue.Queue[Frame | None] = queue.Queue()
+
+    def frames() -> Any:
+        while (f := feed.get(timeout=20.0)) is not None:
+            yield f
+
+    cam = IterableCamera(frames, CAM, rate_hz=None, loop=False)
+    d = Daemon(
+        fake_config(**{"reference.frames": 2}),
+        camera=cam,
+        pressure=constant_pressure(),
+        processor_factory=_HeldProcessor,
+    ).start()
+    try:
+        feed.put(make_frame(0))  # the reference, one frame at a time
+        assert wait_for(lambda: len(d.reference_collected) == 1)
+        feed.put(make_frame(1))
+        assert wait_for(lambda: d.processor is not None)
+        feed.put(make_frame(2))  # A
+        assert wait_for(lambda: d.frames_published == 1)
+        proc = FakeProcessor.instances[-1]
+        assert isinstance(proc, _HeldProcessor)
+        proc.armed.set()
+        feed.put(make_frame(3))  # B: stage two holds it
+        assert wait_for(proc.held.is_set)
+        put_before = d.stage_queue.put_count
+        feed.put(make_frame(4))  # C
+        feed.put(make_frame(5))  # D
+        assert wait_for(lambda: d.stage_queue.put_count == put_before + 2)
+        proc.release.set()
+        assert wait_for(lambda: d.frames_published == 4)
+        assert d.frames_dropped == 0
+    finally:
+        for p in FakeProcessor.instances:
+            if isinstance(p, _HeldProcessor):
+                p.release.set()
+        feed.put(None)
         d.stop()

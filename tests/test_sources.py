@@ -22,6 +22,7 @@ from bubble_rt.daemon.devices import (
 from bubble_rt.daemon.service import Daemon
 from bubble_rt.daemon.source_config import make_camera_source, make_pressure_source
 from bubble_rt.daemon.sources import (
+    STAGE_FRAMES,
     ConstantPressure,
     IterableCamera,
     LatestSlot,
@@ -57,6 +58,21 @@ def test_latest_slot_keeps_newest_and_counts_drops():
     assert s.put(1) and not s.put(2) and not s.put(3)
     assert s.get(0.1) == 3 and s.dropped == 2
     assert s.get(0.01) is None
+
+
+def test_stage_slot_keeps_one_waiting_frame_and_drops_the_oldest_when_full():
+    # the daemon's mailboxes: one slow frame delays the next instead of losing it
+    s: LatestSlot[int] = LatestSlot(STAGE_FRAMES)
+    assert STAGE_FRAMES == 2
+    assert s.put(1) and s.put(2) and s.dropped == 0
+    assert not s.put(3) and s.dropped == 1  # full: 1, the oldest, goes
+    assert [s.get(0.1), s.get(0.1), s.get(0.01)] == [2, 3, None]
+    assert s.put(4) and s.get(0.1) == 4 and s.put_count == 4
+
+
+def test_slot_capacity_below_one_is_a_value_error():
+    with pytest.raises(ValueError, match="capacity"):
+        LatestSlot(0)
 
 
 def test_latest_slot_blocking_put_waits_for_consumer():

@@ -2,17 +2,19 @@
 
 Threads (all daemon threads, all loops bounded by timeouts so shutdown takes < 2 s):
 
-* capture: one per source (``bubble_rt.daemon.sources``), feeding a one-item latest-value slot
+* capture: one per source (``bubble_rt.daemon.sources``), feeding a two-frame mailbox
   (camera) or a pressure ring buffer;
-* stage 1: the newest camera frame, with the pressure at its capture time: the reference
+* stage 1: the next camera frame, with the pressure at its capture time: the reference
   (first K frames, and on ``tare``), then the deformation (flow + lifting, C++, no GIL);
 * stage 2: the forces (C++ ADMM, no GIL), contact patches, the published ForceFrame, so the
   flow of frame k+1 overlaps the solve of frame k;
 * control: ControlRequests on a ROUTER socket (``bubble_rt.daemon.control``), and the Status
   published periodically (``bubble_rt.daemon.health``).
 
-Frames that arrive while a stage is busy replace older unprocessed ones (counted as drops):
-the daemon always works on the newest data and its latency never builds up.
+A frame that arrives while a stage is busy waits behind at most one other
+(``sources.STAGE_FRAMES``): one slow frame delays the next instead of losing it. A frame that
+finds the stage's mailbox full replaces the oldest waiting one (counted as a drop), so the
+latency stays bounded when a stage cannot keep up.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from bubble_rt.daemon.processor import (
 from bubble_rt.daemon.sim_truth import attach_sim_truth
 from bubble_rt.daemon.source_config import make_camera_source, make_pressure_source
 from bubble_rt.daemon.sources import (
+    STAGE_FRAMES,
     CameraSource,
     LatestSlot,
     PressureBuffer,
@@ -109,7 +112,7 @@ class Daemon:
         self.processor: Processor | None = None
         self.mesh_msg: Any | None = None
         self._patches: PatchFinder | None = None
-        self._mid: LatestSlot[_Item] = LatestSlot()
+        self._mid: LatestSlot[_Item] = LatestSlot(STAGE_FRAMES)
         self._pending_params: dict[str, float] = {}
         self._tare_requested = False
         self._ref_frames: list[Frame] = []

@@ -2,8 +2,8 @@
 
 Camera sources (:class:`~bubble_rt.daemon.sim_camera.SimCamera`, :class:`ReplayCamera`, and the devices'
 :class:`~bubble_rt.daemon.devices.RealSenseCamera`) put
-:class:`~bubble_rt.frames.Frame` objects into a :class:`LatestSlot` (one item: a newer frame
-replaces an unconsumed older one, which is counted as dropped). Pressure sources
+:class:`~bubble_rt.frames.Frame` objects into a :class:`LatestSlot` (``STAGE_FRAMES`` items: a
+frame arriving at a full slot replaces the oldest unconsumed one, which is counted as dropped). Pressure sources
 (:class:`~bubble_rt.daemon.devices.SerialPressure`, :class:`ConstantPressure`, or the pressure carried by sim/replay
 frames) feed a :class:`PressureBuffer`, a fixed-size ring of (time, pascals) samples that
 :func:`pair_pressure` interpolates at each camera frame's capture time.
@@ -41,17 +41,27 @@ class SourceError(RuntimeError):
 
 
 # ------------------------------------------------------------------------------ slots
-class LatestSlot(Generic[T]):
-    """A one-item mailbox: ``put`` replaces an unconsumed item (counted in ``dropped``).
+#: Frames a stage's mailbox holds (the camera's, and the one between the daemon's stages): a
+#: frame that arrives while the stage is busy waits behind at most one other, so one slow frame
+#: (a hard solve, a busy host) delays the next instead of losing it; a third replaces the
+#: oldest (a drop), so the latency stays bounded when the stage cannot keep up.
+STAGE_FRAMES = 2
 
-    With ``put(block=True)`` the producer waits instead until the consumer took the previous
-    item (lossless replay). Never grows: the daemon always works on the newest data.
+
+class LatestSlot(Generic[T]):
+    """A bounded mailbox, oldest first: ``put`` on a full one replaces its oldest unconsumed
+    item (counted in ``dropped``).
+
+    With ``put(block=True)`` the producer waits instead until the consumer made room (lossless
+    replay). Never grows past ``capacity``: the daemon works on recent data.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, capacity: int = 1) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, got {capacity}")
+        self.capacity = capacity
         self._cond = threading.Condition()
-        self._item: T | None = None
-        self._has = False
+        self._items: deque[T] = deque()
         self._closed = False
         self.put_count = 0
         self.dropped = 0
@@ -60,26 +70,31 @@ class LatestSlot(Generic[T]):
         """Store ``item``; returns False if an older item was dropped (or the slot closed)."""
         with self._cond:
             if block:
-                while self._has and not self._closed and not (stop is not None and stop.is_set()):
+                while (
+                    len(self._items) >= self.capacity
+                    and not self._closed
+                    and not (stop is not None and stop.is_set())
+                ):
                     self._cond.wait(0.05)
             if self._closed:
                 return False
-            dropped = self._has
+            dropped = len(self._items) >= self.capacity
             if dropped:
+                self._items.popleft()
                 self.dropped += 1
-            self._item, self._has = item, True
+            self._items.append(item)
             self.put_count += 1
             self._cond.notify_all()
             return not dropped
 
     def get(self, timeout: float) -> T | None:
-        """Take the item, waiting up to ``timeout`` seconds; None when nothing arrived."""
+        """Take the oldest item, waiting up to ``timeout`` seconds; None when nothing arrived."""
         with self._cond:
-            if not self._has:
-                self._cond.wait_for(lambda: self._has or self._closed, timeout)
-            if not self._has:
+            if not self._items:
+                self._cond.wait_for(lambda: bool(self._items) or self._closed, timeout)
+            if not self._items:
                 return None
-            item, self._item, self._has = self._item, None, False
+            item = self._items.popleft()
             self._cond.notify_all()
             return item
 
@@ -245,7 +260,7 @@ class CameraSource(ThreadedSource):
 
     def __init__(self, lossless: bool = False) -> None:
         super().__init__()
-        self.output: LatestSlot[Frame] = LatestSlot()
+        self.output: LatestSlot[Frame] = LatestSlot(STAGE_FRAMES)
         #: When set, the pressure carried by each frame is pushed here ("camera" pressure).
         self.pressure_out: PressureBuffer | None = None
         self.lossless = lossless
