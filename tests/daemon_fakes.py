@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import queue
 import threading
 from dataclasses import replace
 from types import SimpleNamespace
@@ -19,7 +20,7 @@ from bubble_rt.estimation.types import Estimate
 from bubble_rt.frames import Frame
 from bubble_rt.io.client import Controller
 from bubble_rt.mesh import Mesh
-from waiting import ANY_PORT
+from waiting import ANY_PORT, wait_for
 
 H, W = 24, 32
 P0 = 101325.0
@@ -233,6 +234,47 @@ def refused_at_load(dotted: str, value: Any) -> ConfigError:
 
 #: The fakes' camera (H x W pixels).
 CAM = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
+
+
+class FedCamera(IterableCamera):
+    """Frames the test hands over one at a time (``feed``), so the daemon's stages can be
+    stepped the same on any machine; ``close`` ends the stream."""
+
+    def __init__(self) -> None:
+        self._queue: queue.Queue[Frame | None] = queue.Queue()
+        super().__init__(self._frames, CAM, rate_hz=None, loop=False)
+
+    def _frames(self):  # type: ignore[no-untyped-def]
+        while (f := self._queue.get(timeout=20.0)) is not None:
+            yield f
+
+    def feed(self, frame: Frame) -> None:
+        self._queue.put(frame)
+
+    def close(self) -> None:
+        self._queue.put(None)
+
+
+def start_fed(processor_factory: Any = None) -> tuple[Daemon, FedCamera]:
+    """A daemon on a :class:`FedCamera` (a two-frame reference), started; nothing fed yet."""
+    cam = FedCamera()
+    d = Daemon(
+        fake_config(**{"reference.frames": 2}),
+        camera=cam,
+        pressure=constant_pressure(),
+        processor_factory=processor_factory or FakeProcessor,
+    ).start()
+    return d, cam
+
+
+def feed_reference_and_first_frame(d: Daemon, cam: FedCamera) -> None:
+    """Feed the two reference frames and frame A one by one; returns once A is published."""
+    cam.feed(make_frame(0))
+    assert wait_for(lambda: len(d.reference_collected) == 1)
+    cam.feed(make_frame(1))
+    assert wait_for(lambda: d.processor is not None)
+    cam.feed(make_frame(2))
+    assert wait_for(lambda: d.frames_published == 1)
 
 
 def sim_like_camera(pressure_pa: float = P0, rate_hz: float = 100.0) -> IterableCamera:

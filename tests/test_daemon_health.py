@@ -15,7 +15,9 @@ from daemon_fakes import (
     ScriptedCamera,
     constant_pressure,
     fake_config,
+    feed_reference_and_first_frame,
     start,
+    start_fed,
     status_of,
 )
 from waiting import wait_for
@@ -142,4 +144,27 @@ def test_a_new_reason_is_published_before_the_status_period_ends():
             assert wait_for(two_stall_reasons, timeout=5.0)
         assert all("camera stalled" in r for r in reasons), reasons
     finally:
+        d.stop()
+
+
+def test_running_reaches_a_subscriber_before_the_first_force_frame():
+    # The status went out from the control loop up to 50 ms after the first force frame, so a
+    # subscriber (`bubble-rt echo`) showed its first frames as "starting".
+    d, cam = start_fed()
+    try:
+        with Subscriber(d.pub_address, d.control_address) as sub:
+            assert wait_for(lambda: isinstance(sub.recv(0.2), protocol.StatusData))
+            states: list[str] = []
+
+            def first_force_frame() -> bool:
+                m = sub.recv(0.2)
+                if isinstance(m, protocol.StatusData):
+                    states.append(m.state)
+                return isinstance(m, protocol.ForceFrameData)
+
+            feed_reference_and_first_frame(d, cam)
+            assert wait_for(first_force_frame)
+        assert states and states[-1] == "running", states
+    finally:
+        cam.close()
         d.stop()

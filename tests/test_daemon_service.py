@@ -4,7 +4,6 @@ slow subscribers, late subscribers, a port in use, single-stage processing, drop
 
 from __future__ import annotations
 
-import queue
 import threading
 from typing import Any
 
@@ -12,19 +11,19 @@ import numpy as np
 import pytest
 import zmq
 from bubble_rt.daemon.service import Daemon, DaemonError
-from bubble_rt.daemon.sources import IterableCamera
 from bubble_rt.frames import Frame
 from bubble_rt.io.client import Subscriber
 from daemon_fakes import (
-    CAM,
     FakeProcessor,
     ScriptedCamera,
     constant_pressure,
     fake_config,
+    feed_reference_and_first_frame,
     make_frame,
     refused_at_load,
     start,
     start_daemon,
+    start_fed,
     status_of,
 )
 from waiting import wait_for
@@ -234,34 +233,17 @@ def test_one_slow_solve_delays_the_next_frames_instead_of_dropping_them():
     # Frames fed one by one: the camera, stage one and stage two are gated, so this is the
     # same on any machine. While stage two is held on frame B, frames C and D pass stage one
     # and wait; once it is released all of them are published and nothing is dropped.
-    feed: queue.Queue[Frame | None] = queue.Queue()
-
-    def frames() -> Any:
-        while (f := feed.get(timeout=20.0)) is not None:
-            yield f
-
-    cam = IterableCamera(frames, CAM, rate_hz=None, loop=False)
-    d = Daemon(
-        fake_config(**{"reference.frames": 2}),
-        camera=cam,
-        pressure=constant_pressure(),
-        processor_factory=_HeldProcessor,
-    ).start()
+    d, cam = start_fed(_HeldProcessor)
     try:
-        feed.put(make_frame(0))  # the reference, one frame at a time
-        assert wait_for(lambda: len(d.reference_collected) == 1)
-        feed.put(make_frame(1))
-        assert wait_for(lambda: d.processor is not None)
-        feed.put(make_frame(2))  # A
-        assert wait_for(lambda: d.frames_published == 1)
+        feed_reference_and_first_frame(d, cam)
         proc = FakeProcessor.instances[-1]
         assert isinstance(proc, _HeldProcessor)
         proc.armed.set()
-        feed.put(make_frame(3))  # B: stage two holds it
+        cam.feed(make_frame(3))  # B: stage two holds it
         assert wait_for(proc.held.is_set)
         put_before = d.stage_queue.put_count
-        feed.put(make_frame(4))  # C
-        feed.put(make_frame(5))  # D
+        cam.feed(make_frame(4))  # C
+        cam.feed(make_frame(5))  # D
         assert wait_for(lambda: d.stage_queue.put_count == put_before + 2)
         proc.release.set()
         assert wait_for(lambda: d.frames_published == 4)
@@ -270,5 +252,5 @@ def test_one_slow_solve_delays_the_next_frames_instead_of_dropping_them():
         for p in FakeProcessor.instances:
             if isinstance(p, _HeldProcessor):
                 p.release.set()
-        feed.put(None)
+        cam.close()
         d.stop()

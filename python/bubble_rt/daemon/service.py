@@ -109,6 +109,7 @@ class Daemon:
         self._pub_lock = threading.Lock()
         self._proc_lock = threading.Lock()
         self._state_lock = threading.Lock()
+        self._status_lock = threading.Lock()
         self.processor: Processor | None = None
         self.mesh_msg: Any | None = None
         self._patches: PatchFinder | None = None
@@ -498,10 +499,13 @@ class Daemon:
         """Stamp and send the frame; count it; record it and show it to the viewers."""
         now = time.time()
         protocol.stamp_publish(msg, time.time_ns())
+        first = self.frames_published == 0
+        self.frames_published += 1
+        if first:  # "running" reaches subscribers before the first force frame, not after it
+            self._send_status()
         with self._pub_lock:
             self._send(protocol.force_topic(self.sensor_id), msg)
         self.seq += 1
-        self.frames_published += 1
         self.vitals.latencies.append(msg.latency_ms)
         self.vitals.publish_times.append(now)
         if reasons:
@@ -544,15 +548,20 @@ class Daemon:
             # REASON_REFRESH_S, so a subscriber never reads a stale reason for a whole period.
             reason_due = state[1] != last[1] and now >= next_status - period + REASON_REFRESH_S
             if now >= next_status or state[0] != last[0] or reason_due:
-                self._last_state = state
                 next_status = now + period
-                msg = self.status_message()
-                with self._pub_lock:
-                    self._send(protocol.status_topic(self.sensor_id), msg)
-                if self.recorder is not None:
-                    self.recorder.write_status(msg)
-                for viewer in self.viewers:
-                    viewer.on_status(msg, self.recorder)
+                self._send_status()
+
+    def _send_status(self) -> None:
+        """Publish the status now (control loop; stage two before the first force frame)."""
+        with self._status_lock:
+            self._last_state = self.state()
+            msg = self.status_message()
+            with self._pub_lock:
+                self._send(protocol.status_topic(self.sensor_id), msg)
+            if self.recorder is not None:
+                self.recorder.write_status(msg)
+            for viewer in self.viewers:
+                viewer.on_status(msg, self.recorder)
 
     def _answer(self, frames: list[bytes]) -> None:
         try:
