@@ -254,3 +254,58 @@ def test_one_slow_solve_delays_the_next_frames_instead_of_dropping_them():
                 p.release.set()
         cam.close()
         d.stop()
+
+
+class _SlowBuild(FakeProcessor):
+    """A FakeProcessor whose construction (the estimator's build) waits for ``go``."""
+
+    building = threading.Event()
+    go = threading.Event()
+
+    def __init__(self, *a: Any) -> None:
+        _SlowBuild.building.set()
+        assert _SlowBuild.go.wait(10.0)
+        super().__init__(*a)
+
+
+class _Indices:
+    """A viewer keeping the index of every published frame, in order."""
+
+    def __init__(self) -> None:
+        self.seen: list[int] = []
+
+    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
+        self.seen.append(int(frame.index))
+
+    def on_status(self, msg: Any, rec: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def test_frames_that_waited_for_the_estimator_give_way_to_the_newest():
+    # Two frames arrive while the estimator is built: the first force frame is the newer one
+    # (a backlog made the first frames 50-100 ms late), and neither counts as dropped.
+    _SlowBuild.building.clear()
+    _SlowBuild.go.clear()
+    d, cam = start_fed(_SlowBuild)
+    seen = _Indices()
+    d.viewers.append(seen)
+    try:
+        cam.feed(make_frame(0))
+        assert wait_for(lambda: len(d.reference_collected) == 1)
+        cam.feed(make_frame(1))
+        assert wait_for(_SlowBuild.building.is_set)
+        cam.feed(make_frame(2))
+        cam.feed(make_frame(3))
+        assert wait_for(lambda: cam.output.put_count == 4)
+        _SlowBuild.go.set()
+        assert wait_for(lambda: d.frames_published >= 1)
+        cam.feed(make_frame(4))
+        assert wait_for(lambda: 4 in seen.seen)
+        assert seen.seen == [3, 4] and d.frames_dropped == 0
+    finally:
+        _SlowBuild.go.set()
+        cam.close()
+        d.stop()

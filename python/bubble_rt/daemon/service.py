@@ -386,6 +386,11 @@ class Daemon:
             self.rezero.tare(self.processor, frames[-1].t)
             if self.recorder is not None:
                 self.recorder.write_reference(frames)
+            cam = self._camera_src
+            if cam is not None and not cam.lossless:
+                # Frames that waited while the estimator was built: the first force frame is
+                # the newest one, not a backlog (not drops: counted out below).
+                cam.output.keep_newest()
         except Exception as exc:
             self.report_error("reference", exc)
         finally:

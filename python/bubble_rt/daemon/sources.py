@@ -98,6 +98,17 @@ class LatestSlot(Generic[T]):
             self._cond.notify_all()
             return item
 
+    def keep_newest(self) -> int:
+        """Discard every waiting item but the newest (counted in ``dropped``); how many."""
+        with self._cond:
+            n = max(0, len(self._items) - 1)
+            for _ in range(n):
+                self._items.popleft()
+            self.dropped += n
+            if n:
+                self._cond.notify_all()
+            return n
+
     def close(self) -> None:
         with self._cond:
             self._closed = True
