@@ -236,6 +236,23 @@ def refused_at_load(dotted: str, value: Any) -> ConfigError:
 CAM = Camera.d405(width=W, height=H, cx=W / 2, cy=H / 2)
 
 
+class Published:
+    """A viewer keeping each published frame's net force z (N) by frame index, in the order
+    they were published."""
+
+    def __init__(self) -> None:
+        self.fz: dict[int, float] = {}
+
+    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
+        self.fz[int(frame.index)] = float(msg.net_force[2])
+
+    def on_status(self, msg: Any, rec: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
 class FedCamera(IterableCamera):
     """Frames the test hands over one at a time (``feed``), so the daemon's stages can be
     stepped the same on any machine; ``close`` ends the stream."""

@@ -15,6 +15,7 @@ from bubble_rt.frames import Frame
 from bubble_rt.io.client import Subscriber
 from daemon_fakes import (
     FakeProcessor,
+    Published,
     ScriptedCamera,
     constant_pressure,
     fake_config,
@@ -268,29 +269,13 @@ class _SlowBuild(FakeProcessor):
         super().__init__(*a)
 
 
-class _Indices:
-    """A viewer keeping the index of every published frame, in order."""
-
-    def __init__(self) -> None:
-        self.seen: list[int] = []
-
-    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
-        self.seen.append(int(frame.index))
-
-    def on_status(self, msg: Any, rec: Any) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def test_frames_that_waited_for_the_estimator_give_way_to_the_newest():
     # Two frames arrive while the estimator is built: the first force frame is the newer one
     # (a backlog made the first frames 50-100 ms late), and neither counts as dropped.
     _SlowBuild.building.clear()
     _SlowBuild.go.clear()
     d, cam = start_fed(_SlowBuild)
-    seen = _Indices()
+    seen = Published()
     d.viewers.append(seen)
     try:
         cam.feed(make_frame(0))
@@ -303,8 +288,8 @@ def test_frames_that_waited_for_the_estimator_give_way_to_the_newest():
         _SlowBuild.go.set()
         assert wait_for(lambda: d.frames_published >= 1)
         cam.feed(make_frame(4))
-        assert wait_for(lambda: 4 in seen.seen)
-        assert seen.seen == [3, 4] and d.frames_dropped == 0
+        assert wait_for(lambda: 4 in seen.fz)
+        assert list(seen.fz) == [3, 4] and d.frames_dropped == 0
     finally:
         _SlowBuild.go.set()
         cam.close()

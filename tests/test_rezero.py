@@ -24,7 +24,7 @@ from bubble_rt.daemon.sources import IterableCamera, ReplayCamera
 from bubble_rt.frames import Frame
 from bubble_rt.io import protocol
 from bubble_rt.io.mcap import TOPIC_REZERO, McapRecording, iter_messages
-from daemon_fakes import P0, FakeProcessor, H, W, fake_config, make_frame
+from daemon_fakes import P0, FakeProcessor, H, Published, W, fake_config, make_frame
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -162,29 +162,13 @@ def drift_camera() -> IterableCamera:
     return cam
 
 
-class Forces:
-    """A viewer keeping each published frame's net force z (N) by frame index."""
-
-    def __init__(self) -> None:
-        self.fz: dict[int, float] = {}
-
-    def on_frame(self, frame: Any, msg: Any, mesh: Any, rec: Any) -> None:
-        self.fz[int(frame.index)] = float(msg.net_force[2])
-
-    def on_status(self, msg: Any, rec: Any) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def live(
     cfg: DaemonConfig, camera: Any, last_index: int, record: tuple[int, str] | None = None
-) -> tuple[Daemon, Forces]:
+) -> tuple[Daemon, Published]:
     """Run until frame ``last_index`` is published; ``record`` = (frame index, path): start
     recording there (mid-run, as ``record_start`` would)."""
     d = Daemon(cfg, camera=camera, processor_factory=DriftProcessor)
-    forces = Forces()
+    forces = Published()
     d.viewers.append(forces)
     d.start()
     try:
