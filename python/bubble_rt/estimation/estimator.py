@@ -60,7 +60,7 @@ DEFAULT_MATERIAL = Material(
 #: comes from the refit on the support the multipliers mark, not from the group lasso's own
 #: forces, and a solve certified to 5e-3 of its objective marks the support a solve to the
 #: core's 8e-4 marks, but for a node or two on a few frames, in 27-49 % fewer iterations
-#: (docs/evaluation.md, "The estimator's solver tolerance").
+#: (docs/evaluation.md, "The estimator's solver settings").
 ESTIMATOR_SOLVER = SolverSettings(eps_rel=5e-3)
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
