@@ -25,7 +25,7 @@ from bubble_rt.daemon.sources import (
     STAGE_FRAMES,
     ConstantPressure,
     IterableCamera,
-    LatestSlot,
+    Mailbox,
     PressureBuffer,
     ReplayCamera,
     SourceError,
@@ -54,7 +54,7 @@ pytestmark = pytest.mark.timeout(60)
 
 # ------------------------------------------------------------------ slots and sync
 def test_latest_slot_keeps_newest_and_counts_drops():
-    s: LatestSlot[int] = LatestSlot()
+    s: Mailbox[int] = Mailbox()
     assert s.put(1) and not s.put(2) and not s.put(3)
     assert s.get(0.1) == 3 and s.dropped == 2
     assert s.get(0.01) is None
@@ -62,7 +62,7 @@ def test_latest_slot_keeps_newest_and_counts_drops():
 
 def test_stage_slot_keeps_one_waiting_frame_and_drops_the_oldest_when_full():
     # the daemon's mailboxes: one slow frame delays the next instead of losing it
-    s: LatestSlot[int] = LatestSlot(STAGE_FRAMES)
+    s: Mailbox[int] = Mailbox(STAGE_FRAMES)
     assert STAGE_FRAMES == 2
     assert s.put(1) and s.put(2) and s.dropped == 0
     assert not s.put(3) and s.dropped == 1  # full: 1, the oldest, goes
@@ -72,11 +72,11 @@ def test_stage_slot_keeps_one_waiting_frame_and_drops_the_oldest_when_full():
 
 def test_slot_capacity_below_one_is_a_value_error():
     with pytest.raises(ValueError, match="capacity"):
-        LatestSlot(0)
+        Mailbox(0)
 
 
 def test_latest_slot_blocking_put_waits_for_consumer():
-    s: LatestSlot[int] = LatestSlot()
+    s: Mailbox[int] = Mailbox()
     s.put(1)
     done = threading.Event()
     threading.Thread(target=lambda: (s.put(2, block=True), done.set()), daemon=True).start()
@@ -86,7 +86,7 @@ def test_latest_slot_blocking_put_waits_for_consumer():
 
 
 def test_latest_slot_close_releases_blocked_producer():
-    s: LatestSlot[int] = LatestSlot()
+    s: Mailbox[int] = Mailbox()
     s.put(1)
     done = threading.Event()
     threading.Thread(target=lambda: (s.put(2, block=True), done.set()), daemon=True).start()

@@ -8,7 +8,7 @@ import logging
 import threading
 from typing import Any
 
-from bubble_rt.daemon.sources import LatestSlot
+from bubble_rt.daemon.sources import Mailbox
 from bubble_rt.io.foxglove import (
     DEFAULT_ADDRESS,
     Encoded,
@@ -70,7 +70,7 @@ class FoxgloveView:
         self._channels: dict[str, Any] = {}
         for spec in channel_specs():
             self._channel(spec)
-        self._slot: LatestSlot[tuple[Any, Any, Any, Any]] = LatestSlot()
+        self._slot: Mailbox[tuple[Any, Any, Any, Any]] = Mailbox()
         self._stop = threading.Event()
         self.sent = 0
         self.error = ""

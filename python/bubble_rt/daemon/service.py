@@ -43,7 +43,7 @@ from bubble_rt.daemon.source_config import make_camera_source, make_pressure_sou
 from bubble_rt.daemon.sources import (
     STAGE_FRAMES,
     CameraSource,
-    LatestSlot,
+    Mailbox,
     PressureBuffer,
     ThreadedSource,
     pair_pressure,
@@ -113,7 +113,7 @@ class Daemon:
         self.processor: Processor | None = None
         self.mesh_msg: Any | None = None
         self._patches: PatchFinder | None = None
-        self._mid: LatestSlot[_Item] = LatestSlot(STAGE_FRAMES)
+        self._mid: Mailbox[_Item] = Mailbox(STAGE_FRAMES)
         self._pending_params: dict[str, float] = {}
         self._tare_requested = False
         self._ref_frames: list[Frame] = []
@@ -587,7 +587,7 @@ class Daemon:
         return self._pressure_src
 
     @property
-    def stage_queue(self) -> LatestSlot[_Item]:
+    def stage_queue(self) -> Mailbox[_Item]:
         return self._mid
 
     @property

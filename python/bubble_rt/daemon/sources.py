@@ -1,8 +1,8 @@
-"""Capture sources for the daemon: one thread each, feeding bounded latest-value slots.
+"""Capture sources for the daemon: one thread each, feeding bounded mailboxes.
 
 Camera sources (:class:`~bubble_rt.daemon.sim_camera.SimCamera`, :class:`ReplayCamera`, and the devices'
 :class:`~bubble_rt.daemon.devices.RealSenseCamera`) put
-:class:`~bubble_rt.frames.Frame` objects into a :class:`LatestSlot` (``STAGE_FRAMES`` items: a
+:class:`~bubble_rt.frames.Frame` objects into a :class:`Mailbox` (``STAGE_FRAMES`` items: a
 frame arriving at a full slot replaces the oldest unconsumed one, which is counted as dropped). Pressure sources
 (:class:`~bubble_rt.daemon.devices.SerialPressure`, :class:`ConstantPressure`, or the pressure carried by sim/replay
 frames) feed a :class:`PressureBuffer`, a fixed-size ring of (time, pascals) samples that
@@ -48,7 +48,7 @@ class SourceError(RuntimeError):
 STAGE_FRAMES = 2
 
 
-class LatestSlot(Generic[T]):
+class Mailbox(Generic[T]):
     """A bounded mailbox, oldest first: ``put`` on a full one replaces its oldest unconsumed
     item (counted in ``dropped``).
 
@@ -271,7 +271,7 @@ class CameraSource(ThreadedSource):
 
     def __init__(self, lossless: bool = False) -> None:
         super().__init__()
-        self.output: LatestSlot[Frame] = LatestSlot(STAGE_FRAMES)
+        self.output: Mailbox[Frame] = Mailbox(STAGE_FRAMES)
         #: When set, the pressure carried by each frame is pushed here ("camera" pressure).
         self.pressure_out: PressureBuffer | None = None
         self.lossless = lossless
