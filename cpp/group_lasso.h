@@ -83,7 +83,7 @@ struct SolverInfo {
 
 struct SolverResult {
   RowMatrixX3d dU;    // N x 3 correction (m); rim rows are -U_rim
-  RowMatrixX3d dual;  // N x 3 multipliers of F_ext, ||dual_i|| <= w_i (1/N)
+  RowMatrixX3d dual;  // N x 3 multipliers of F_ext, ||dual_i|| <= w_i: the certificate's dual point
   SolverInfo info;
 };
 
@@ -146,7 +146,7 @@ class GroupLassoSolver {
   double objective(const Eigen::VectorXd& Ax) const;
   double dual_bound(SolveState& st) const;
   void projected_multiplier(DualPoint& p) const;
-  void force_multiplier(const Eigen::VectorXd& Ax, double rho, DualPoint& p) const;
+  void stationary_multiplier(const SolveState& st, DualPoint& p) const;
   void maximize_on_segment(DualPoint& p1, const DualPoint& p2, SolveState& st) const;
   void best_scaling(const DualPoint& p, DualPoint& out) const;
   double dual_value(const DualPoint& p) const;

@@ -41,9 +41,7 @@ def test_default_config():
     assert c.material == Material(0.8e6, 0.5, 0.65e-3)
     assert c.nonlinear_iterations == 2
     assert (c.inflation_pa, c.ambient_pa) == (5000.0, 101325.0)
-    # The core's solver settings with a looser duality-gap tolerance (ESTIMATOR_SOLVER).
-    assert c.solver == SolverSettings(eps_rel=5e-3)
-    assert SolverSettings().eps_rel < c.solver.eps_rel
+    assert c.solver == SolverSettings()
     with pytest.raises(dataclasses.FrozenInstanceError):
         c.k_f = 1.0  # type: ignore[misc]
 
@@ -308,22 +306,24 @@ def test_estimator_is_finite_at_every_range_limit():
 # ------------------------------------------------------------------ the estimator's solver
 @functools.cache
 def _tracked_press(
-    geometry: str, trajectory: int
+    geometry: str, trajectory: int, seed: int | None = None, mesh_name: str = "medium"
 ) -> tuple[Mesh, object, list[tuple[np.ndarray, float, float]]]:
-    """A simulated press (calibration seed, 20 frames) tracked onto the medium mesh: mesh,
+    """A simulated press (calibration seed unless given) tracked onto a mesh preset: mesh,
     reference, and per frame the tracked U (N x 3, m), dp (Pa) and the true |f| (N)."""
     from bubble_rt import eval as ev
     from bubble_rt.estimation.deformation import DeformationTracker, FlowSettings, Reference
 
-    traj = ev.simulate_trajectory(geometry, trajectory, 20, ev.CALIB_SEED_BASE)
-    mesh = ev.estimator_mesh("medium", traj)
+    traj = ev.simulate_trajectory(
+        geometry, trajectory, 20, ev.CALIB_SEED_BASE if seed is None else seed
+    )
+    mesh = ev.estimator_mesh(mesh_name, traj)
     ref = Reference.capture(traj.reference_frames)
     tracker = DeformationTracker(mesh, traj.camera, ref, FlowSettings())
-    frames = []
+    tracked = []
     for fr in traj.frames:
         d = tracker.track(fr)
-        frames.append((d.U.copy(), float(d.dp), float(np.linalg.norm(fr.truth.net_force))))
-    return mesh, ref, frames
+        tracked.append((d.U.copy(), float(d.dp), float(np.linalg.norm(fr.truth.net_force))))
+    return mesh, ref, tracked
 
 
 def _round_press() -> tuple[Mesh, object, list[tuple[np.ndarray, float, float]]]:
@@ -331,24 +331,55 @@ def _round_press() -> tuple[Mesh, object, list[tuple[np.ndarray, float, float]]]
     return _tracked_press("round", 0)
 
 
-def test_the_estimators_solver_tolerance_does_not_show_in_the_estimate():
-    # ESTIMATOR_SOLVER stops the lasso at 5e-3 of its objective, not the core's 8e-4: the
-    # estimate is the refit on the support the multipliers mark, and that support is the one a
-    # tight solve (8e-6) marks.
-    mesh, ref, frames = _round_press()
+def _agrees_with_a_tight_solve(mesh, ref, frames, first: int = 0) -> np.ndarray:
+    """Estimates with the default solver and a tight one (8e-6) on the same frames; asserts
+    per frame net force within 2 % + 5 mN and contact within one node. Iterations (default,
+    tight) over the frames from ``first`` on."""
     default = EstimatorConfig()
     tight = dataclasses.replace(default, solver=SolverSettings.tight())
     ests = [ForceEstimator(mesh, c, ref) for c in (default, tight)]
     iterations = np.zeros(2)
-    for U, dp, _ in frames:
+    for k, (U, dp, _) in enumerate(frames):
         got, want = (e.estimate(U, dp) for e in ests)
+        if k < first:
+            continue
         assert got.info.status == want.info.status == "solved"
         iterations += (got.info.iterations, want.info.iterations)
         size = float(np.linalg.norm(want.net_force))
-        assert np.linalg.norm(got.net_force - want.net_force) <= 0.02 * size + 0.005
-        assert np.count_nonzero(got.contact != want.contact) <= 1
+        assert np.linalg.norm(got.net_force - want.net_force) <= 0.02 * size + 0.005, k
+        assert np.count_nonzero(got.contact != want.contact) <= 1, k
+    return iterations
+
+
+def test_the_estimators_solver_tolerance_does_not_show_in_the_estimate():
+    # The estimate is the refit on the support the multipliers mark; the default solve (the
+    # core's 8e-4) marks the support a tight solve (8e-6) marks, in far fewer iterations
+    # (measured 0.62x).
+    mesh, ref, frames = _round_press()
+    iterations = _agrees_with_a_tight_solve(mesh, ref, frames)
     assert sum(f > 0.1 for *_, f in frames) >= 6
-    assert iterations[0] < 0.6 * iterations[1]
+    assert iterations[0] < 0.7 * iterations[1]
+
+
+def test_an_untouched_frame_after_a_noisy_one_has_no_phantom_force():
+    # Evaluation seed 1000, round trajectory 3, frame 1 (untouched, its lasso objective 10x
+    # frame 0's): a solve certified only to 5e-3 stopped after 16 iterations with multipliers
+    # near their bounds on a few nodes, and the refit on them read 0.91 N with no contact.
+    mesh, ref, frames = _tracked_press("round", 3, seed=1000)
+    frames = frames[:3]
+    assert max(f for *_, f in frames) < 0.05
+    _agrees_with_a_tight_solve(mesh, ref, frames)
+    est = ForceEstimator(mesh, EstimatorConfig(), ref)
+    for U, dp, _ in frames:
+        assert np.linalg.norm(est.estimate(U, dp).net_force) < 0.05
+
+
+def test_a_firm_point_press_reads_the_tight_solves_force():
+    # Evaluation seed 100000, point trajectory 3 on the fine mesh, frames 15-17 (7.2-8.4 N):
+    # solves certified to 5e-3 put a borderline node in the support on frames 16 or 17 and the
+    # refit read 1.5 N more normal force than the tight solve's (8.0 against 6.6 N).
+    mesh, ref, frames = _tracked_press("point", 3, seed=100000, mesh_name="fine")
+    _agrees_with_a_tight_solve(mesh, ref, frames[:18], first=15)
 
 
 def test_a_touchs_first_frames_solve_in_under_100_iterations():

@@ -45,7 +45,6 @@ from bubble_rt.sensor import SIM
 
 __all__ = [
     "CONFIG_KEYS",
-    "ESTIMATOR_SOLVER",
     "Estimate",
     "EstimatorConfig",
     "ForceEstimator",
@@ -56,12 +55,6 @@ __all__ = [
 DEFAULT_MATERIAL = Material(
     **{p.material: p.default for p in ESTIMATOR_PARAMS.values() if p.material is not None}
 )
-#: The estimator's solver: the core's settings with a looser duality-gap tolerance. The estimate
-#: comes from the refit on the support the multipliers mark, not from the group lasso's own
-#: forces, and a solve certified to 5e-3 of its objective marks the support a solve to the
-#: core's 8e-4 marks, but for a node or two on a few frames, in 27-49 % fewer iterations
-#: (docs/evaluation.md, "The estimator's solver settings").
-ESTIMATOR_SOLVER = SolverSettings(eps_rel=5e-3)
 #: Pressures above this are taken as absolute when deriving the rest gauge pressure (Pa).
 ABSOLUTE_PRESSURE_MIN = 30e3
 
@@ -105,7 +98,10 @@ class EstimatorConfig:
             stiffness (0: the linear model's forces). The linear model reads a firm press's
             normal force 5-12 % high and, at the E that fits it, the shear 15 % low
             (docs/evaluation.md, "Diagnosis of the torque and split errors").
-        solver: ADMM SolverSettings (``ESTIMATOR_SOLVER``).
+        solver: ADMM SolverSettings, the core's (certified to 8e-4 of the objective). The
+            support is read from the multipliers, and a looser certificate leaves them short
+            of it on some frames: at 5e-3, support flips of 0.9-1.5 N (docs/evaluation.md,
+            "The estimator's solver settings").
     """
 
     material: Material = field(default_factory=lambda: DEFAULT_MATERIAL)
@@ -120,7 +116,7 @@ class EstimatorConfig:
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
     ambient_pa: float = ESTIMATOR_PARAMS["ambient_pa"].default
     nonlinear_iterations: int = int(ESTIMATOR_PARAMS["nonlinear_iterations"].default)
-    solver: SolverSettings = ESTIMATOR_SOLVER
+    solver: SolverSettings = field(default_factory=SolverSettings)
 
     def __post_init__(self) -> None:
         if not isinstance(self.material, Material):

@@ -53,11 +53,12 @@ def capture_settings(config: Any, *, realtime: bool, layout: str = "sim") -> dic
     configuration says ``profile = "auto"``; its ambient pressure applies unless the
     configuration gives one, and its bubble bounds the pressure rate of the plausibility
     checks (``[plausibility]``, ``pressure.min_pa``/``max_pa``)."""
-    from bubble_rt.estimation.estimator import CONFIG_KEYS, ESTIMATOR_SOLVER
+    from bubble_rt.estimation.estimator import CONFIG_KEYS
+    from bubble_rt.estimation.solver import SolverSettings
 
     ec, fc = config.estimator, config.flow
     limit = config.solver.time_limit_ms / 1e3 if realtime else 0.0
-    est = EstimatorConfig(solver=dataclasses.replace(ESTIMATOR_SOLVER, time_limit=limit))
+    est = EstimatorConfig(solver=SolverSettings(time_limit=limit))
     values = {key: getattr(ec, key) for key in CONFIG_KEYS}
     profile = ec.sensor_profile(layout)
     if not values["ambient_pa"]:
