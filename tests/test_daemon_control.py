@@ -188,7 +188,11 @@ def test_record_start_over_control_writes_a_readable_file(tmp_path):
     try:
         with Controller(d.control_address) as c:
             assert c.record_start(str(out)) == str(out.resolve())
+            # Waits on force frames published since the start, not on messages written: the
+            # camera's messages outnumber the force frames by a ratio set by the machine.
+            start = d.frames_published
             assert wait_for(lambda: d.recorder is not None and d.recorder.written > 30)
+            assert wait_for(lambda: d.frames_published >= start + 8)
             st = c.status()
             assert st.recording and st.recording_error == ""
             assert c.record_stop() == str(out.resolve())
