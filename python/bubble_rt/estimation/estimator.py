@@ -101,7 +101,7 @@ class EstimatorConfig:
         solver: ADMM SolverSettings, the core's (certified to 8e-4 of the objective). The
             support is read from the multipliers, and a looser certificate leaves them short
             of it on some frames: at 5e-3, support flips of 0.9-1.5 N (docs/evaluation.md,
-            "The estimator's solver settings").
+            "The dual bound, the reported multipliers, and the estimator back at 8e-4").
     """
 
     material: Material = field(default_factory=lambda: DEFAULT_MATERIAL)
