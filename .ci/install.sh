@@ -5,7 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="${1:-}"
 need=()
-for p in libeigen3-dev libopencv-dev clang-format; do
+for p in libeigen3-dev libopencv-dev libopenblas-serial-dev clang-format; do
   dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then

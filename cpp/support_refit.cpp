@@ -1,12 +1,12 @@
 #include "support_refit.h"
 
-#include <Eigen/Cholesky>
 #include <Eigen/Core>
 #include <Eigen/SparseCholesky>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "errors.h"
@@ -15,13 +15,14 @@ namespace bubble {
 
 namespace {
 // The dense support form costs about s^3 (its Cholesky), the sparse constraint form about
-// c^1.5 (a sparse Cholesky on a surface mesh). Measured per refit at 390 / 749 nodes: dense
-// 2.5-2.7e-8 ms x s^3, sparse 1.2-1.4e-4 ms x c^1.5 (support and constraint dofs s, c), so
-// the dense form wins while s^3 < 5000 c^1.5 (the switch lands at a support of about 30 % of
-// the free dofs on both meshes).
+// c^1.5 (a sparse Cholesky on a surface mesh), for support and constraint dofs s, c. Measured
+// per linear refit on a demo frame, LAPACK's dense Cholesky (dense_cholesky.h), supports
+// grown from the middle: the two forms cost the same at s^3 / c^1.5 = 1.1e4 on 390 nodes (1.8
+// against 1.7 ms) and 1.2e4 on 749 (8.2 against 7.7 ms); with Eigen's Cholesky the crossover
+// was at 5e3. The switch lands at a support of about 45 % of the free dofs.
 bool dense_is_cheaper(size_t s, size_t c) {
   const double sd = static_cast<double>(s), cd = static_cast<double>(c);
-  return sd * sd * sd < 5000.0 * cd * std::sqrt(cd);
+  return sd * sd * sd < 1e4 * cd * std::sqrt(cd);
 }
 
 // out(a) = H.col(cols[a]) . v, four columns per pass over v. The columns of H for a support are
@@ -100,13 +101,11 @@ SupportRefit::SupportRefit(const SparseMatrixd& K, const Eigen::Ref<const RowMat
   lu_.factorize(Kff);
   require(lu_.info() == Eigen::Success, "K_ff is singular: the refit needs a clamped rim");
 
-  // H = G^T G with G = K_ff^{-1}: the sparse LU solves the identity column by column (cheap:
-  // the factor is sparse), then a symmetric rank update forms H (half a dense product).
-  const Eigen::MatrixXd G = lu_.solve(Eigen::MatrixXd::Identity(m, m));
-  require(G.allFinite(), "K_ff is singular: the refit needs a clamped rim");
-  H_.setZero(m, m);
-  H_.selfadjointView<Eigen::Lower>().rankUpdate(G.transpose());
-  H_.triangularView<Eigen::StrictlyUpper>() = H_.transpose();
+  // H = (K_ff K_ff^T)^{-1} from the dense Cholesky factor of K_ff K_ff^T (LAPACK dpotrf,
+  // dpotri: m^3 flops). Forming it as G^T G with G = K_ff^{-1}, solved column by column with
+  // the sparse LU, took 8x as long (1.7 s against 0.2 s at 749 nodes; K_ff's condition number
+  // is about 2e3 there, so squaring it costs no digits that matter: the two agree to 2e-12).
+  H_ = spd_inverse(Eigen::MatrixXd(KKt_));
   setup_ms_ =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -171,10 +170,10 @@ SupportRefit::Factored::Factored(
   dense_ = dense_is_cheaper(sd_.size(), cd_.size());
   if (dense_) {
     const int s = static_cast<int>(sd_.size());
-    Eigen::MatrixXd Hss(s, s);
+    Eigen::MatrixXd Hss(s, s);   // lower triangle only: the factorization reads no more
     for (int b = 0; b < s; ++b)  // down each column: both matrices are column-major
-      for (int a = 0; a < s; ++a) Hss(a, b) = owner.H_(sd_[a], sd_[b]);
-    if (s > 0) hss_.compute(Hss);
+      for (int a = b; a < s; ++a) Hss(a, b) = owner.H_(sd_[a], sd_[b]);
+    if (s > 0) hss_.compute(std::move(Hss));
     return;
   }
   const int m = 3 * owner.nf_, c = static_cast<int>(cd_.size());

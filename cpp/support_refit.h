@@ -20,13 +20,13 @@
 // takes the support form while the support is small, the constraint form once it is not.
 #pragma once
 
-#include <Eigen/Cholesky>
 #include <Eigen/Core>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <Eigen/SparseLU>
 #include <vector>
 
+#include "dense_cholesky.h"
 #include "membrane.h"
 
 namespace bubble {
@@ -58,7 +58,7 @@ class SupportRefit {
     const SupportRefit& owner_;
     std::vector<int> sd_, cd_;  // support and constrained dofs (free numbering)
     bool dense_ = true;
-    Eigen::LLT<Eigen::MatrixXd> hss_;          // H_SS (dense form)
+    DenseCholesky hss_;                        // H_SS (dense form)
     Eigen::SimplicialLLT<SparseMatrixd> mcc_;  // (K_ff K_ff^T)_CC (sparse form)
   };
 

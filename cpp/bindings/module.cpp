@@ -1,6 +1,7 @@
 // The one pybind11 module. Each concept binds itself in cpp/bindings/<concept>.cpp.
 #include <pybind11/pybind11.h>
 
+#include "dense_cholesky.h"
 #include "errors.h"
 
 namespace py = pybind11;
@@ -19,6 +20,7 @@ PYBIND11_MODULE(_core, m) {
   // Registered once, before any binding can throw it: every binding's bad input becomes
   // _core.InputError, a ValueError.
   py::register_exception<bubble::InputError>(m, "InputError", PyExc_ValueError);
+  bubble::use_single_threaded_blas();
   bind_membrane(m);
   bind_green_membrane(m);
   bind_solver(m);
