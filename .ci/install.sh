@@ -5,9 +5,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="${1:-}"
 need=()
-for p in libeigen3-dev libopencv-dev libopenblas-serial-dev clang-format; do
+for p in libeigen3-dev libopencv-dev clang-format; do
   dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
 done
+# OpenBLAS: any of Debian's variants builds and runs (the module sets one BLAS thread itself);
+# the serial one is installed when none is there.
+dpkg -s libopenblas-serial-dev >/dev/null 2>&1 || dpkg -s libopenblas-pthread-dev >/dev/null 2>&1 ||
+  dpkg -s libopenblas-openmp-dev >/dev/null 2>&1 || need+=(libopenblas-serial-dev)
 if [ ${#need[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq

@@ -239,8 +239,11 @@ def test_nonlinear_refit_recovers_the_nonlinear_membranes_force(force):
 
 
 # A light touch holds a few nodes (the dense support form); a firm press most of the membrane
-# (about 250 of 390 nodes at 10 N: the sparse constraint form). Both are the same minimum.
-@pytest.mark.parametrize("n_support", [6, 0.8], ids=["few-nodes", "most-of-the-membrane"])
+# (about 250 of 390 nodes at 10 N: the sparse constraint form). Both are the same minimum. 40 %
+# of this mesh's membrane is still the dense form: LAPACK's Cholesky of about 200 rows.
+@pytest.mark.parametrize(
+    "n_support", [6, 0.4, 0.8], ids=["few-nodes", "a-large-dense-support", "most-of-the-membrane"]
+)
 def test_refit_is_the_smallest_correction_with_zero_force_off_the_support(n_support):
     est = ForceEstimator(_mesh())
     mesh = _mesh()
