@@ -21,8 +21,8 @@ void factor_lower(Eigen::MatrixXd& a) {
   const int n = static_cast<int>(a.rows());
   int info = 0;
   dpotrf_(&kLower, &n, a.data(), &n, &info);
-  require(info == 0,
-          "DenseCholesky: matrix not positive definite (LAPACK info " + std::to_string(info) + ")");
+  require(info == 0, "dense Cholesky: matrix not positive definite (LAPACK info " +
+                         std::to_string(info) + ")");
 }
 }  // namespace
 

@@ -5,7 +5,7 @@
 // OpenBLAS picks its kernels for the CPU at run time (AVX2 and FMA where the machine has them),
 // while Eigen's own kernels are fixed when the portable wheel is compiled (SSE2): at 498 rows
 // dpotrf takes 1.7 ms against Eigen's 5.8 ms in one run on this machine class
-// (docs/evaluation.md, "The refit's dense factorization").
+// (docs/evaluation.md, "The refit's dense algebra through OpenBLAS").
 #pragma once
 
 #include <Eigen/Core>
@@ -23,13 +23,11 @@ Eigen::MatrixXd spd_inverse(Eigen::MatrixXd A);
 
 class DenseCholesky {
  public:
-  DenseCholesky() = default;
   // Factors A (symmetric positive definite; only its lower triangle is read). Throws
   // InputError when A is not square or not positive definite.
   void compute(Eigen::MatrixXd A);
   // x = A^{-1} b.
   Eigen::VectorXd solve(const Eigen::VectorXd& b) const;
-  Eigen::Index rows() const { return L_.rows(); }
 
  private:
   Eigen::MatrixXd L_;  // lower triangle: the factor (the strict upper triangle is unused)

@@ -8,12 +8,12 @@
 // With the rim eliminated, F_free = F_raw + K_ff x (x = dU on free dofs), so x = G (f - F_raw)
 // with G = K_ff^{-1} and f the forces (zero off S). The minimum over f_S solves
 //     H_SS f_S = (H F_raw)_S,   H = G^T G = (K_ff K_ff^T)^{-1},
-// a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup: sparse LU solves of
-// the identity, then a symmetric rank update; O(|S| n + |S|^3) per frame), and one sparse LU
-// solve with K_ff recovers the corrected displacement.
+// a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup: LAPACK's Cholesky
+// of the dense K_ff K_ff^T, then its inverse; O(|S| n + |S|^3) per frame, dense_cholesky.h),
+// and one sparse LU solve with K_ff recovers the corrected displacement.
 // A firm press puts most of the membrane in the support (about 250 of 390 nodes at 10 N), and
-// the dense |S|^3 then costs 12-16 ms. The same minimum is then taken over the constraints
-// instead, C the free dofs off the support:
+// the dense |S|^3 then costs more than the sparse form. The same minimum is then taken over the
+// constraints instead, C the free dofs off the support:
 //     x = -K_C^T lambda,   (K_ff K_ff^T)_CC lambda = F_raw,C,
 // a sparse symmetric positive definite system (K_ff K_ff^T couples nodes two rings apart),
 // factored per frame by sparse Cholesky. Both forms give the same x to round-off; the refit
