@@ -2,7 +2,8 @@
 
 #include <Eigen/OrderingMethods>
 #include <algorithm>
-#include <limits>
+#include <array>
+#include <cmath>
 #include <map>
 #include <string>
 
@@ -12,21 +13,20 @@
 namespace bubble {
 
 using SparseMatrix = Eigen::SparseMatrix<double>;
+using Block = Eigen::Matrix3d;
 
 // What depends only on the pattern of M.
 struct BlockLDLT::Structure {
   int nb = 0;
   std::vector<int> outer, inner;  // the pattern of M it was built for (CSC, compressed)
   std::vector<int> orig;          // permuted node k -> original node
-  std::vector<int> mp_from_m;     // value q of the permuted matrix = value mp_from_m[q] of M
-  SparseMatrix Mp;                // the permuted matrix (values overwritten per factorization)
-  Eigen::SimplicialLDLT<SparseMatrix, Eigen::Lower, Eigen::NaturalOrdering<int>> ldlt;
-  // Value p of L goes to vals_[to_vals[p]] (>= 0), to ldiag_[-1 - to_vals[p]], or nowhere
-  // (kSkip: the unit diagonal).
-  static constexpr long kSkip = std::numeric_limits<long>::min();
-  std::vector<long> to_vals;
-  std::vector<int> colptr;  // nb + 1
-  std::vector<int> rowblk;  // row block of each stored block
+  // L's strictly lower blocks by block columns (rows ascending), and the same by block rows
+  // (columns ascending): position in the columns' storage, and that position's column.
+  std::vector<int> colptr, rowblk;
+  std::vector<int> rowptr, rowpos, poscol;
+  // M's blocks on and below the diagonal, by permuted block columns: row block, and for each
+  // of the 9 entries (block3 layout) the index of its value in M (-1: not stored).
+  std::vector<int> mcolptr, mrowblk, mvalue;
 
   bool matches(const SparseMatrix& M) const {
     return M.rows() == 3 * nb && M.isCompressed() &&
@@ -50,58 +50,73 @@ std::vector<int> node_ordering(const SparseMatrix& M, int nb) {
   return std::vector<int>(P.indices().data(), P.indices().data() + nb);
 }
 
-// The permuted pattern (nodes reordered, components kept together); its values are the
-// indices of M's values, so that later factorizations only copy numbers.
-void permute_pattern(const SparseMatrix& M, BlockLDLT::Structure& s) {
-  std::vector<int> pos(s.nb);
-  for (int k = 0; k < s.nb; ++k) pos[s.orig[k]] = k;
-  std::vector<Eigen::Triplet<double>> tm;
-  tm.reserve(M.nonZeros());
-  for (int col = 0; col < M.outerSize(); ++col)
-    for (SparseMatrix::InnerIterator it(M, col); it; ++it) {
+// Where M's values go: its blocks on and below the diagonal in the permuted order. A stored
+// entry above the diagonal fills its mirror image, so M may hold either triangle or both.
+void gather_map(const SparseMatrix& M, const std::vector<int>& pos, BlockLDLT::Structure& s) {
+  std::vector<std::map<int, std::array<int, 9>>> cols(s.nb);
+  for (int c = 0; c < M.outerSize(); ++c)
+    for (SparseMatrix::InnerIterator it(M, c); it; ++it) {
       const int r = static_cast<int>(it.row());
-      tm.emplace_back(3 * pos[r / 3] + r % 3, 3 * pos[col / 3] + col % 3,
-                      static_cast<double>(&it.value() - M.valuePtr()));
+      int I = pos[r / 3], J = pos[c / 3], ri = r % 3, ci = c % 3;
+      if (I < J) std::swap(I, J), std::swap(ri, ci);
+      auto [slot, fresh] = cols[J].try_emplace(I);
+      if (fresh) slot->second.fill(-1);
+      slot->second[block3::offset(ri, ci)] = static_cast<int>(&it.value() - M.valuePtr());
+      if (I == J) slot->second[block3::offset(ci, ri)] = slot->second[block3::offset(ri, ci)];
     }
-  s.Mp.resize(M.rows(), M.cols());
-  s.Mp.setFromTriplets(tm.begin(), tm.end());
-  s.Mp.makeCompressed();
-  s.mp_from_m.resize(s.Mp.nonZeros());
-  for (long q = 0; q < s.Mp.nonZeros(); ++q) s.mp_from_m[q] = static_cast<int>(s.Mp.valuePtr()[q]);
+  s.mcolptr.assign(s.nb + 1, 0);
+  for (int J = 0; J < s.nb; ++J) {
+    for (const auto& [I, idx] : cols[J]) {
+      s.mrowblk.push_back(I);
+      s.mvalue.insert(s.mvalue.end(), idx.begin(), idx.end());
+    }
+    s.mcolptr[J + 1] = static_cast<int>(s.mrowblk.size());
+  }
 }
 
-// Where each value of L goes in the block storage (L's pattern is fixed by the analysis).
-void block_layout(const SparseMatrix& L, BlockLDLT::Structure& s) {
-  using S = BlockLDLT::Structure;
-  s.to_vals.assign(L.nonZeros(), S::kSkip);
+// The block pattern of L: column J holds M's rows below J and its children's rows below J,
+// the parent of J being its first row (the elimination tree of the node graph).
+void symbolic(BlockLDLT::Structure& s) {
+  std::vector<std::vector<int>> children(s.nb);
+  std::vector<int> mark(s.nb, -1), rows;
   s.colptr.assign(s.nb + 1, 0);
-  s.rowblk.clear();
-  std::map<int, int> slot;  // row block -> index within this column block (ascending rows)
   for (int J = 0; J < s.nb; ++J) {
-    slot.clear();
-    for (int c = 0; c < 3; ++c)
-      for (SparseMatrix::InnerIterator it(L, 3 * J + c); it; ++it)
-        if (it.row() / 3 > J) slot.emplace(static_cast<int>(it.row() / 3), 0);
-    const long base = static_cast<long>(s.rowblk.size());
-    for (auto& [row, index] : slot) {
-      index = static_cast<int>(s.rowblk.size() - base);
-      s.rowblk.push_back(row);
-    }
-    for (int c = 0; c < 3; ++c)
-      for (SparseMatrix::InnerIterator it(L, 3 * J + c); it; ++it) {
-        const int r = static_cast<int>(it.row());
-        const long p = &it.value() - L.valuePtr();
-        if (r <= 3 * J + c) continue;  // unit diagonal (stored or not)
-        if (r / 3 == J) {
-          // Within the diagonal block: (1,0), (2,0), (2,1).
-          const int k = (r % 3 == 1) ? 0 : (c == 0 ? 1 : 2);
-          s.to_vals[p] = -1 - (3L * J + k);
-        } else {
-          s.to_vals[p] = 9 * (base + slot[r / 3]) + block3::offset(r % 3, c);
-        }
-      }
+    rows.clear();
+    auto add = [&](int I) {
+      if (I > J && mark[I] != J) mark[I] = J, rows.push_back(I);
+    };
+    for (int q = s.mcolptr[J]; q < s.mcolptr[J + 1]; ++q) add(s.mrowblk[q]);
+    for (const int C : children[J])
+      for (int p = s.colptr[C]; p < s.colptr[C + 1]; ++p) add(s.rowblk[p]);
+    std::sort(rows.begin(), rows.end());
+    if (!rows.empty()) children[rows.front()].push_back(J);
+    s.rowblk.insert(s.rowblk.end(), rows.begin(), rows.end());
     s.colptr[J + 1] = static_cast<int>(s.rowblk.size());
   }
+  // The same pattern by rows, for the left-looking updates.
+  s.rowptr.assign(s.nb + 1, 0);
+  for (const int I : s.rowblk) ++s.rowptr[I + 1];
+  for (int I = 0; I < s.nb; ++I) s.rowptr[I + 1] += s.rowptr[I];
+  s.rowpos.resize(s.rowblk.size());
+  s.poscol.resize(s.rowblk.size());
+  std::vector<int> next(s.rowptr.begin(), s.rowptr.end() - 1);
+  for (int K = 0; K < s.nb; ++K)
+    for (int p = s.colptr[K]; p < s.colptr[K + 1]; ++p) {
+      s.rowpos[next[s.rowblk[p]]++] = p;
+      s.poscol[p] = K;
+    }
+}
+
+Block load(const double* v) {
+  Block b;
+  b.topRows<2>() = block3::top(v);
+  b.row(2) = block3::bottom(v);
+  return b;
+}
+
+void store(const Block& b, double* v) {
+  for (int c = 0; c < 3; ++c)
+    for (int r = 0; r < 3; ++r) v[block3::offset(r, c)] = b(r, c);
 }
 }  // namespace
 
@@ -120,33 +135,60 @@ BlockLDLT::BlockLDLT(const SparseMatrix& M, std::shared_ptr<Structure> structure
   s->outer.assign(M.outerIndexPtr(), M.outerIndexPtr() + M.outerSize() + 1);
   s->inner.assign(M.innerIndexPtr(), M.innerIndexPtr() + M.nonZeros());
   s->orig = node_ordering(M, s->nb);
-  permute_pattern(M, *s);
-  s->ldlt.analyzePattern(s->Mp);
+  std::vector<int> pos(s->nb);
+  for (int k = 0; k < s->nb; ++k) pos[s->orig[k]] = k;
+  gather_map(M, pos, *s);
+  symbolic(*s);
   structure_ = s;
   factorize(M);
 }
 
+// Left-looking: column J of the Schur complement, S_IJ = M_IJ - sum_K L_IK D_K L_JK^T over the
+// columns K with a block in row J, then S_JJ = L_JJ D_J L_JJ^T and L_IJ = S_IJ (D_J L_JJ^T)^-1.
 void BlockLDLT::factorize(const SparseMatrix& M) {
-  Structure& s = *structure_;
-  for (long q = 0; q < s.Mp.nonZeros(); ++q) s.Mp.valuePtr()[q] = M.valuePtr()[s.mp_from_m[q]];
-  s.ldlt.factorize(s.Mp);
-  require(s.ldlt.info() == Eigen::Success, "BlockLDLT: factorization failed");
-  dinv_ = s.ldlt.vectorD().cwiseInverse();
-  require(dinv_.allFinite(), "BlockLDLT: singular matrix");
-  const SparseMatrix& L = s.ldlt.matrixL().nestedExpression();
-  if (s.to_vals.empty()) block_layout(L, s);
-  require(static_cast<long>(s.to_vals.size()) == L.nonZeros(), "BlockLDLT: pattern changed");
-  ldiag_.assign(3 * static_cast<size_t>(s.nb), 0.0);
+  const Structure& s = *structure_;
+  const int nb = s.nb;
+  ldiag_.assign(3 * static_cast<size_t>(nb), 0.0);
   vals_.assign(9 * s.rowblk.size(), 0.0);
-  for (long p = 0; p < L.nonZeros(); ++p) {
-    const long to = s.to_vals[p];
-    if (to >= 0)
-      vals_[to] = L.valuePtr()[p];
-    else if (to != Structure::kSkip)
-      ldiag_[-1 - to] = L.valuePtr()[p];
+  dinv_.resize(3 * nb);
+  std::vector<Block> W(nb, Block::Zero());  // column J's Schur blocks, by row block
+  const double* mv = M.valuePtr();
+  for (int J = 0; J < nb; ++J) {
+    for (int q = s.mcolptr[J]; q < s.mcolptr[J + 1]; ++q) {
+      const int* idx = &s.mvalue[9 * static_cast<size_t>(q)];
+      double v[9];
+      for (int k = 0; k < 9; ++k) v[k] = idx[k] >= 0 ? mv[idx[k]] : 0.0;
+      W[s.mrowblk[q]] += load(v);
+    }
+    for (int r = s.rowptr[J]; r < s.rowptr[J + 1]; ++r) {
+      const int p = s.rowpos[r], K = s.poscol[p];
+      const Block T = (load(&vals_[9 * static_cast<size_t>(p)]) *
+                       Eigen::Vector3d(1 / dinv_[3 * K], 1 / dinv_[3 * K + 1], 1 / dinv_[3 * K + 2])
+                           .asDiagonal())
+                          .transpose();  // D_K L_JK^T
+      for (int q = p; q < s.colptr[K + 1]; ++q)
+        W[s.rowblk[q]].noalias() -= load(&vals_[9 * static_cast<size_t>(q)]) * T;
+    }
+    const Block& S = W[J];
+    const double d0 = S(0, 0), l10 = S(1, 0) / d0, l20 = S(2, 0) / d0;
+    const double d1 = S(1, 1) - l10 * l10 * d0, l21 = (S(2, 1) - l20 * l10 * d0) / d1;
+    const double d2 = S(2, 2) - l20 * l20 * d0 - l21 * l21 * d1;
+    require(d0 > 0 && d1 > 0 && d2 > 0 && std::isfinite(d0 + d1 + d2),
+            "BlockLDLT: matrix is not positive definite");
+    ldiag_[3 * J] = l10, ldiag_[3 * J + 1] = l20, ldiag_[3 * J + 2] = l21;
+    dinv_.segment<3>(3 * J) = Eigen::Vector3d(1 / d0, 1 / d1, 1 / d2);
+    for (int p = s.colptr[J]; p < s.colptr[J + 1]; ++p) {
+      Block& X = W[s.rowblk[p]];  // rows of S_IJ -> rows of L_IJ: solve x (D_J L_JJ^T) = s
+      X.col(1) -= l10 * X.col(0);
+      X.col(2) -= l20 * X.col(0) + l21 * X.col(1);
+      X *= dinv_.segment<3>(3 * J).asDiagonal();
+      store(X, &vals_[9 * static_cast<size_t>(p)]);
+      X.setZero();
+    }
+    W[J].setZero();
   }
   w_.resize(M.rows());
-  // Check the repacked solve against the matrix itself.
+  // Check the block solve against the matrix itself.
   Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(M.rows(), 1.0, 2.0), x(M.rows());
   solve(b, x);
   const double res = (M * x - b).norm() / b.norm();

@@ -2,19 +2,20 @@
 //
 // The system matrix couples the three displacement components of every node, so after a
 // fill-reducing ordering of the *nodes* (AMD on the node graph) the factor L is made of dense
-// 3 x 3 blocks. Eigen's SimplicialLDLT computes the numbers; they are then repacked into
-// block-compressed columns, which makes the triangular solves (the per-iteration cost of
-// ADMM) several times faster than scalar CSC solves. The blocks are stored so that the solves
+// 3 x 3 blocks: M = L D L^T with unit lower triangular 3 x 3 diagonal blocks and D diagonal
+// (the scalar LDL^T's factor, grouped by node). Both the factorization (left-looking, one 3 x 3
+// block product per update) and the triangular solves (the per-iteration cost of ADMM) work on
+// the blocks, several times faster than on scalars. The blocks are stored so that the solves
 // use packed arithmetic (block_matrix.h, block3). The block solve is checked against the
 // matrix once after factorizing.
 //
-// The ordering, the symbolic analysis and the repacking map depend only on the sparsity
-// pattern; they are computed once (Structure) and shared by every factorization of a matrix
-// with the same pattern (the solver refactors P + sigma I + rho A^T A as rho moves).
+// The ordering, the symbolic factorization (the block pattern of L, from the elimination tree
+// of the node graph) and where M's numbers go depend only on the sparsity pattern; they are
+// computed once (Structure) and shared by every factorization of a matrix with the same pattern
+// (the solver refactors P + sigma I + rho A^T A as rho moves).
 #pragma once
 
 #include <Eigen/Core>
-#include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <memory>
 #include <vector>
