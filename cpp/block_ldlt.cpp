@@ -202,12 +202,13 @@ double BlockLDLT::memory_bytes() const {
          static_cast<double>(vals_.size() + ldiag_.size() + dinv_.size() + w_.size());
 }
 
-void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
+void BlockLDLT::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, Eigen::VectorXd& work) const {
   const Structure& s = *structure_;
   const int nb = s.nb;
+  work.resize(3 * nb);
   // Raw pointers: the stores into w could alias the vectors' own members, which would make
   // the compiler reload them for every block.
-  double* w = w_.data();
+  double* w = work.data();
   const double* vals = vals_.data();
   const int* colptr = s.colptr.data();
   const int* rowblk = s.rowblk.data();

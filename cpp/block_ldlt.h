@@ -31,8 +31,11 @@ class BlockLDLT {
   // The same with the pattern analysis of an earlier factorization, reused when M has the
   // same sparsity pattern (otherwise analysed afresh).
   BlockLDLT(const Eigen::SparseMatrix<double>& M, std::shared_ptr<Structure> structure);
-  // x = M^{-1} b. x and b may not alias.
-  void solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const;
+  // x = M^{-1} b. x and b may not alias. Uses the factorization's own workspace: one caller at a
+  // time (the ADMM's per-iteration solves, which should not allocate).
+  void solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) const { solve(b, x, w_); }
+  // The same in the caller's workspace (resized to 3n): safe from several threads at once.
+  void solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, Eigen::VectorXd& work) const;
   long block_count() const;
   // Bytes held by this factorization's numbers (the shared structure not counted).
   double memory_bytes() const;

@@ -9,8 +9,11 @@
 // with G = K_ff^{-1} and f the forces (zero off S). The minimum over f_S solves
 //     H_SS f_S = (H F_raw)_S,   H = G^T G = (K_ff K_ff^T)^{-1},
 // a dense 3|S| x 3|S| system: H is computed once per model (O(n^3) setup: LAPACK's Cholesky
-// of the dense K_ff K_ff^T, then its inverse; O(|S| n + |S|^3) per frame, dense_cholesky.h),
-// and one sparse LU solve with K_ff recovers the corrected displacement.
+// of the dense K_ff K_ff^T, then its inverse) for H_SS (O(|S|^3) per support,
+// dense_cholesky.h). The right-hand side (H F_raw)_S comes from a sparse block LDL^T solve with
+// K_ff K_ff^T (block_ldlt.h), not from H's columns: those are megabytes per support (6.5 MB for
+// 134 nodes of the 749-node mesh) read at every modified-Newton step. One sparse LU solve with
+// K_ff recovers the corrected displacement.
 // A firm press puts most of the membrane in the support (about 250 of 390 nodes at 10 N), and
 // the dense |S|^3 then costs more than the sparse form. The same minimum is then taken over the
 // constraints instead, C the free dofs off the support:
@@ -24,8 +27,10 @@
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <Eigen/SparseLU>
+#include <memory>
 #include <vector>
 
+#include "block_ldlt.h"
 #include "dense_cholesky.h"
 #include "membrane.h"
 
@@ -92,10 +97,11 @@ class SupportRefit {
   Eigen::VectorXi slot_;  // node -> free index, -1 on the rim
   SparseMatrixd K_;
   RowMatrixX3d an_;
-  Eigen::SparseLU<SparseMatrixd> lu_;  // K_ff
-  SparseMatrixd KffT_;                 // K_ff^T
-  SparseMatrixd KKt_;                  // K_ff K_ff^T (sparse: two rings)
-  Eigen::MatrixXd H_;                  // (K_ff K_ff^T)^{-1}, 3 nf x 3 nf
+  Eigen::SparseLU<SparseMatrixd> lu_;            // K_ff
+  SparseMatrixd KffT_;                           // K_ff^T
+  SparseMatrixd KKt_;                            // K_ff K_ff^T (sparse: two rings)
+  std::shared_ptr<const BlockLDLT> kkt_factor_;  // of KKt_
+  Eigen::MatrixXd H_;                            // (K_ff K_ff^T)^{-1}, 3 nf x 3 nf
   double setup_ms_ = 0;
 };
 
