@@ -12,8 +12,9 @@
 // of the dense K_ff K_ff^T, then its inverse) for H_SS (O(|S|^3) per support,
 // dense_cholesky.h). The right-hand side (H F_raw)_S comes from a sparse block LDL^T solve with
 // K_ff K_ff^T (block_ldlt.h), not from H's columns: those are megabytes per support (6.5 MB for
-// 134 nodes of the 749-node mesh) read at every modified-Newton step. One sparse LU solve with
-// K_ff recovers the corrected displacement.
+// 134 nodes of the 749-node mesh) read at every modified-Newton step. The corrected
+// displacement x = K_ff^{-1} (f - F_raw) = K_ff^T (K_ff K_ff^T)^{-1} (f - F_raw) takes a second
+// solve with the same factor (no LU of K_ff: one factorization serves both).
 // A firm press puts most of the membrane in the support (about 250 of 390 nodes at 10 N), and
 // the dense |S|^3 then costs more than the sparse form. The same minimum is then taken over the
 // constraints instead, C the free dofs off the support:
@@ -26,7 +27,6 @@
 #include <Eigen/Core>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
-#include <Eigen/SparseLU>
 #include <memory>
 #include <vector>
 
@@ -97,7 +97,6 @@ class SupportRefit {
   Eigen::VectorXi slot_;  // node -> free index, -1 on the rim
   SparseMatrixd K_;
   RowMatrixX3d an_;
-  Eigen::SparseLU<SparseMatrixd> lu_;            // K_ff
   SparseMatrixd KffT_;                           // K_ff^T
   SparseMatrixd KKt_;                            // K_ff K_ff^T (sparse: two rings)
   std::shared_ptr<const BlockLDLT> kkt_factor_;  // of KKt_
