@@ -240,9 +240,10 @@ def test_replay_of_a_recording_started_mid_drift_gives_the_live_forces(tmp_path)
     assert anchor.weight == 0.0 and anchor.drift_pa > 20.0  # the state it started from
     assert len(steps) > 30 and all(m.weight > 0 and m.frame_indices for m in steps)
     replay = ReplayCamera(str(p), realtime=False, loop=False, recorded=True)
-    # To the file's last frame: it holds the frames stage one took (and their re-zero steps),
-    # which can be a frame or two past the last one published before the live daemon stopped.
-    last = max(f.index for f in McapRecording(p))
+    # To the last frame the file says was published: a recorded replay feeds only those. The
+    # file can hold a frame or two more (stage one took and recorded them, and the live daemon
+    # stopped before publishing them); waiting for one of those timed the test out.
+    last = max(McapRecording(p).published)
     d2, replayed = live(drift_config(**{"camera.pace": "fast"}), replay, last)
     assert d2.frames_dropped == 0 and max(replayed.fz) == last
     assert d2.rezero.count == len(events)
