@@ -50,8 +50,9 @@ class Anderson {
     count_ = 0;
     have_prev_ = false;
   }
-  // u: the input of G; g: G(u) on entry, the accelerated next iterate on exit.
-  void step(const Eigen::VectorXd& u, Eigen::VectorXd& g) {
+  // u: the input of G; g: G(u) on entry, the accelerated next iterate on exit. Returns
+  // whether g moved (false while the memory is empty).
+  bool step(const Eigen::VectorXd& u, Eigen::VectorXd& g) {
     f_ = g - u;
     const double fn = f_.squaredNorm();
     if (have_prev_ && fn > 4.0 * fprev_norm_) count_ = 0;  // diverging: restart the memory
@@ -70,12 +71,13 @@ class Anderson {
     const int k = static_cast<int>(std::min<long>(count_, mem_));
     if (k > 0) rhs_.noalias() = dF_.leftCols(k).transpose() * f_;
     f_prev_.swap(f_);
-    if (k == 0) return;
+    if (k == 0) return false;
     Eigen::MatrixXd H = H_.topLeftCorner(k, k);
     H.diagonal().array() += 1e-10 * H.diagonal().maxCoeff() + 1e-300;
     const Eigen::VectorXd gamma = H.ldlt().solve(rhs_);
-    if (!gamma.allFinite()) return;
+    if (!gamma.allFinite()) return false;
     g.noalias() -= dG_.leftCols(k) * gamma;
+    return true;
   }
 
  private:
@@ -336,9 +338,9 @@ struct GroupLassoSolver::SolveState {
         dy(m),
         da(nfd),
         accelerate(anderson_memory > 0),
-        aa(std::max(anderson_memory, 1), 2 * m),
-        u(2 * m),
-        g(2 * m) {}
+        aa(std::max(anderson_memory, 1), m),
+        u(m),
+        g(m) {}
   Clock::time_point t0;
   bool warm = false;           // started from the previous frame's solution
   double raw_force_scale = 0;  // rms nodal force at dU = 0, floors the force scale of rho
@@ -499,11 +501,7 @@ double GroupLassoSolver::relative_gap(const SolveState& st) {
 }
 
 void GroupLassoSolver::admm_iteration(SolveState& st) {
-  const int m = 3 * n_;
-  if (st.accelerate) {
-    st.u.head(m) = zh_;
-    st.u.tail(m) = st.inv_rho * yh_;
-  }
+  if (st.accelerate) st.u = zh_ + st.inv_rho * yh_;
   x_update(st);
   over_relax(st);
   z_update(st);
@@ -531,14 +529,18 @@ void GroupLassoSolver::over_relax(SolveState& st) {
 
 // The prox of sum_i wh_i ||z_i + bh_i|| / rho at v: the penalty acts on the force z + b, so
 // shrink u = v + b blockwise and shift back.
+void GroupLassoSolver::prox(const Eigen::VectorXd& v, double inv_rho, Eigen::VectorXd& out) const {
+  for (int i = 0; i < n_; ++i) {
+    const Eigen::Vector3d u = v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
+    const double nu = u.norm(), t = wh_(i) * inv_rho;
+    const double k = nu > t ? 1.0 - t / nu : 0.0;
+    out.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
+  }
+}
+
 void GroupLassoSolver::z_update(SolveState& st) const {
   st.v = st.zr + st.inv_rho * yh_;
-  for (int i = 0; i < n_; ++i) {
-    const Eigen::Vector3d u = st.v.segment<3>(3 * i) + bh_.segment<3>(3 * i);
-    const double nu = u.norm(), t = wh_(i) * st.inv_rho;
-    const double k = nu > t ? 1.0 - t / nu : 0.0;
-    st.zn.segment<3>(3 * i) = k * u - bh_.segment<3>(3 * i);
-  }
+  prox(st.v, st.inv_rho, st.zn);
 }
 
 void GroupLassoSolver::dual_update(SolveState& st) {
@@ -546,16 +548,15 @@ void GroupLassoSolver::dual_update(SolveState& st) {
   zh_.swap(st.zn);
 }
 
-// Anderson acceleration of the map (z, y / rho) -> (z, y / rho) of one iteration: the next z
-// and y depend on x only through the sigma term, so (z, y) is the state; y / rho puts both
-// halves on the scale of z.
+// Anderson acceleration of the Douglas-Rachford variable v = z + y / rho: after an iteration
+// z = prox(v) and y / rho = v - prox(v), so v alone is the state (the next iterate depends on
+// x only through the sigma term), half the size of (z, y), and every extrapolated v gives a
+// multiplier inside its balls.
 void GroupLassoSolver::anderson_step(SolveState& st) {
-  const int m = 3 * n_;
-  st.g.head(m) = zh_;
-  st.g.tail(m) = st.inv_rho * yh_;
-  st.aa.step(st.u, st.g);
-  zh_ = st.g.head(m);
-  yh_ = st.rho * st.g.tail(m);
+  st.g = st.v;
+  if (!st.aa.step(st.u, st.g)) return;  // z and y are prox(v) and rho (v - prox(v)) already
+  prox(st.g, st.inv_rho, zh_);
+  yh_ = st.rho * (st.g - zh_);
 }
 
 // The certificate at the current iterate: two products with A^T (dual_bound); A x is kept up
@@ -702,8 +703,8 @@ void GroupLassoSolver::write_result(const SolveState& st, int iterations, Solver
     if (is_rim_(i)) res.dU.row(i) = -U_.row(i);
   for (int j = 0; j < nf_; ++j) res.dU.row(free_(j)) = x.segment<3>(3 * j).transpose();
   // The multipliers reported are the dual point the certificate was computed at: inside their
-  // balls, and within the gap of the dual optimum. The ADMM iterate is neither (Anderson steps
-  // leave it outside its balls), and when the certificate ends a solve early its multipliers can
+  // balls, and within the gap of the dual optimum. The ADMM iterate is in its balls but not
+  // within the gap: when the certificate ends a solve early its multipliers can
   // sit near their bounds at nodes with no force: a support read from them marked an untouched
   // frame's noise and the refit put 0.9 N on it (tests/test_estimator.py).
   const Eigen::VectorXd& y = st.have_best ? st.best.y : yh_;

@@ -20,8 +20,8 @@
 // released within one frame). rho lives on a grid of quarter decades; each factorization is
 // cached, so returning to a rho is free, a new rho costs only the numeric factorization (the
 // ordering and symbolic analysis are shared, block_ldlt.h), and rho is re-set only when the rule
-// moves it by more than adaptive_rho_tolerance. Anderson acceleration of the (z, y / rho)
-// fixed-point map.
+// moves it by more than adaptive_rho_tolerance. Anderson acceleration of the fixed-point map
+// of v = z + y / rho (the Douglas-Rachford variable: z = prox(v), y / rho = v - prox(v)).
 //
 // Termination uses the duality gap: every dual iterate is dual feasible (||y_i|| <= w_i), so
 // objective(x) - dual(y) bounds the suboptimality of the returned x. "solved" means
@@ -135,6 +135,7 @@ class GroupLassoSolver {
   void admm_iteration(SolveState& st);
   void x_update(SolveState& st) const;
   void over_relax(SolveState& st);
+  void prox(const Eigen::VectorXd& v, double inv_rho, Eigen::VectorXd& out) const;
   void z_update(SolveState& st) const;  // block soft-threshold
   void dual_update(SolveState& st);
   void anderson_step(SolveState& st);
