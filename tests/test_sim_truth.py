@@ -86,6 +86,34 @@ def test_contact_mask_transfers_a_known_contact_disc():
     assert np.sum(r_est < R - h) <= n_inside <= np.sum(r_est < R + h)
 
 
+def test_contact_mask_marks_the_node_under_a_pin_smaller_than_a_node():
+    """A loaded contact on one simulation node covers no estimator node's region by half, but
+    the truth still marks one node: the one nearest the pin, the only one that can carry it."""
+    from dataclasses import replace
+
+    from bubble_rt.sim.truth import TOUCH_N
+
+    sim = Mesh.generate(2500)
+    est = Mesh.preset("medium")
+    target = est.vertices[np.argmin(np.hypot(est.vertices[:, 0] - 0.006, est.vertices[:, 1]))]
+    # the pin's simulation node: the one nearest a point a third of an edge beside the target
+    h = est.edge_lengths().mean()
+    j = int(np.argmin(np.linalg.norm(sim.vertices - (target + [h / 3, 0, 0]), axis=1)))
+    contact = np.zeros(sim.n_nodes, bool)
+    contact[j] = True
+    forces = np.zeros((sim.n_nodes, 3))
+    forces[j] = [0.0, 0.0, -1.0]  # 1 N on the pin
+    gt = replace(truth_for(sim, sim.vertices, contact), node_forces=forces)
+    mask = gt.contact_mask(est)
+    nearest = int(np.argmin(np.linalg.norm(est.vertices - sim.vertices[j], axis=1)))
+    assert np.flatnonzero(mask).tolist() == [nearest]
+    # the same pin below a touch's force is no contact, as with no pin at all
+    light = replace(gt, node_forces=forces * 0.5 * TOUCH_N)
+    assert not light.contact_mask(est).any()
+    # without the load the region alone marks no node: the pin is below half a node's region
+    assert not truth_for(sim, sim.vertices, contact).contact_mask(est).any()
+
+
 def test_contact_mask_of_no_contact_is_empty():
     sim = Mesh.generate(500)
     gt = truth_for(sim, sim.vertices, np.zeros(sim.n_nodes, bool))

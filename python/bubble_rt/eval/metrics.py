@@ -72,11 +72,11 @@ from numpy.typing import NDArray
 from bubble_rt.estimation.registry import estimator_kinds
 from bubble_rt.mesh import lumped_areas as lumped_areas  # re-exported for evaluation code
 from bubble_rt.mesh import vertex_normals as vertex_normals
+from bubble_rt.sim.truth import TOUCH_N
 
 #: True net force (N) below which a frame counts as untouched: the false-contact rate is over
-#: these frames only (the simulator's truth is exactly 0 N without indenter contact; a grazing
-#: first touch reads up to a few hundredths of a newton).
-UNTOUCHED_N = 0.05
+#: these frames only (the truth's own definition of a touch, ``sim.truth.TOUCH_N``).
+UNTOUCHED_N = TOUCH_N
 #: Range (N, inclusive) of true net force of a light touch, whose detection rate is reported.
 LIGHT_TOUCH_RANGE_N = (0.1, 1.5)
 #: True net force (N) from which a frame's torque and patches are scored (the issue's 1 N).

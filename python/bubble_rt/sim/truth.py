@@ -15,6 +15,10 @@ from scipy.spatial import cKDTree
 
 from bubble_rt.mesh import Mesh
 
+#: Force (N) from which a true patch is a touch: below it the truth marks no node for it (the
+#: simulator's truth is exactly 0 N without indenter contact; a grazing first touch reads up to
+#: a few hundredths of a newton). The evaluation's untouched frames are those below it.
+TOUCH_N = 0.05
 #: Barycentric sample points per triangle used by ``contact_mask`` (a triangular lattice of
 #: interior points, none on a median, so each sample belongs to exactly one corner's third).
 _LATTICE = 9
@@ -237,7 +241,11 @@ class GroundTruth:
         lies in the simulation's contact region. The region is measured by a fixed lattice of
         sample points in every triangle, each weighted by the triangle's area; a sample lies in
         the contact region when the linear interpolation of the simulation nodes' 0/1 contact
-        flags at its closest point on the simulation reference surface exceeds 0.5.
+        flags at its closest point on the simulation reference surface exceeds 0.5. Every
+        true patch (``patches``) of ``TOUCH_N`` or more also marks the node nearest its
+        force-weighted centre on the untouched surface: a patch smaller than half a node's
+        region (a pin, one of two pins) would otherwise leave no node in contact under a load
+        of newtons, and an estimate that marks the loaded node would score as a false contact.
         """
         V = np.asarray(mesh.vertices, dtype=np.float64)
         T = np.asarray(mesh.triangles, dtype=np.int64)
@@ -257,4 +265,14 @@ class GroundTruth:
         total = np.bincount(owner, weights=wt, minlength=len(V))
         covered = np.bincount(owner, weights=wt * inside, minlength=len(V))
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.asarray(covered > 0.5 * total)
+            mask = covered > 0.5 * total
+        x_ref = np.asarray(self.sim_reference_vertices, dtype=np.float64)
+        f = np.linalg.norm(np.asarray(self.node_forces, dtype=np.float64), axis=1)
+        centres = [
+            (f[p.nodes] / f[p.nodes].sum()) @ x_ref[p.nodes]
+            for p in self.patches()
+            if np.linalg.norm(p.force) >= TOUCH_N
+        ]
+        if centres:
+            mask[cKDTree(V).query(np.asarray(centres))[1]] = True
+        return np.asarray(mask)
