@@ -23,7 +23,8 @@ double median(std::vector<double>& v) {
 
 BoolVector neighbour_outliers(const Eigen::Ref<const RowMatrixX3d>& U,
                               const Eigen::Ref<const BoolVector>& measured,
-                              const Eigen::Ref<const NeighbourTable>& neighbours, double tol) {
+                              const Eigen::Ref<const NeighbourTable>& neighbours, double tol,
+                              double relative_tol) {
   const Eigen::Index n = U.rows();
   require(measured.size() == n, "measured must have N = " + std::to_string(n) + " entries");
   require(neighbours.rows() == n, "neighbours must have N = " + std::to_string(n) + " rows");
@@ -39,14 +40,13 @@ BoolVector neighbour_outliers(const Eigen::Ref<const RowMatrixX3d>& U,
       if (j >= 0 && measured(j)) ids.push_back(static_cast<int>(j));
     }
     if (ids.size() < 2) continue;
-    double dev2 = 0.0;
+    Eigen::RowVector3d med;
     for (int c = 0; c < 3; ++c) {
       v.clear();
       for (const int j : ids) v.push_back(U(j, c));
-      const double d = U(i, c) - median(v);
-      dev2 += d * d;
+      med(c) = median(v);
     }
-    out(i) = std::sqrt(dev2) > tol;
+    out(i) = (U.row(i) - med).norm() > std::max(tol, relative_tol * med.norm());
   }
   return out;
 }

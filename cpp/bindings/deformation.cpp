@@ -176,7 +176,8 @@ void bind_deformation(py::module_& m) {
   m.def(
       "_neighbour_outliers",
       [](const ArrD& U, const py::array_t<bool, py::array::c_style>& measured,
-         const py::array_t<std::int64_t, py::array::c_style>& neighbours, double tol) {
+         const py::array_t<std::int64_t, py::array::c_style>& neighbours, double tol,
+         double relative_tol) {
         const auto u = bubble::bindings::map_n3(U, "U");
         bubble::require(measured.ndim() == 1, "measured must be 1-D");
         bubble::require(neighbours.ndim() == 2, "neighbours must be N x W");
@@ -184,10 +185,10 @@ void bind_deformation(py::module_& m) {
         const Eigen::Map<const bubble::NeighbourTable> nb(neighbours.data(), neighbours.shape(0),
                                                           neighbours.shape(1));
         py::gil_scoped_release release;
-        return bubble::neighbour_outliers(u, meas, nb, tol);
+        return bubble::neighbour_outliers(u, meas, nb, tol, relative_tol);
       },
       py::arg("U").noconvert(), py::arg("measured").noconvert(), py::arg("neighbours").noconvert(),
-      py::arg("tol"));
+      py::arg("tol"), py::arg("relative_tol") = 0.0);
 
   m.def(
       "_lift_pixels",

@@ -95,6 +95,12 @@ class FlowSettings:
             membrane).
         outlier_m: a node whose U differs by more than this from the median of its measured
             neighbours is flagged (isolated depth/flow glitches); None disables.
+        outlier_relative: where the neighbours themselves moved, the tolerance is this
+            fraction of their median displacement when that is larger than ``outlier_m``. A
+            pin's tip stands 4-5 mm deeper than its neighbours at 12-19 mm (0.2-0.45 of
+            theirs, the larger share on coarser meshes), and a flat 4 mm tolerance erased the
+            tip of every firm pin press (docs/phantom-forces.md). The glitches ``outlier_m``
+            is for stand 4-26 mm apart from neighbours that moved 1.5 mm at most.
         jump_m: depth-jump tolerance along the camera ray, metres. A measured node is flagged
             (FLAG_DEPTH_JUMP) when its displacement along its camera ray differs by more than
             this both from the membrane around it (the harmonic interpolant of every other
@@ -128,6 +134,7 @@ class FlowSettings:
     clamp_rim: bool = True
     max_displacement_m: float = 0.03
     outlier_m: float | None = 0.004
+    outlier_relative: float = 0.5
     jump_m: float | None = 0.008
 
     def __post_init__(self) -> None:
@@ -372,7 +379,10 @@ class NodeTracker:
         with np.errstate(invalid="ignore"):
             flags[np.linalg.norm(U, axis=1) > s.max_displacement_m] |= FLAG_OUTLIER
         if s.outlier_m is not None:
-            flags[neighbour_outliers(U, flags == 0, self._neighbours, s.outlier_m)] |= FLAG_OUTLIER
+            out = neighbour_outliers(
+                U, flags == 0, self._neighbours, s.outlier_m, s.outlier_relative
+            )
+            flags[out] |= FLAG_OUTLIER
         known = flags == 0
         Uk = U.copy()
         if s.clamp_rim:

@@ -133,10 +133,15 @@ def neighbour_table(L: sp.csr_matrix) -> NDArray[np.intp]:
 
 
 def neighbour_outliers(
-    U: NDArray, measured: NDArray[np.bool_], nb: NDArray[np.intp], tol: float
+    U: NDArray,
+    measured: NDArray[np.bool_],
+    nb: NDArray[np.intp],
+    tol: float,
+    relative_tol: float = 0.0,
 ) -> NDArray[np.bool_]:
-    """Measured nodes whose U (N x 3, m) is further than ``tol`` (m) from the component-wise
-    median of their measured neighbours (needs at least two of them); ``nb`` is
+    """Measured nodes whose U (N x 3, m) is further than ``max(tol, relative_tol * |m|)`` (m)
+    from ``m``, the component-wise median of their measured neighbours (needs at least two of
+    them); ``nb`` is
     ``neighbour_table``'s N x W table. C++ (cpp/neighbour_median.h): the NumPy version, a
     gather and sort of N x W x 3 values, cost a third of a millisecond per frame."""
     from bubble_rt import _core
@@ -147,6 +152,7 @@ def neighbour_outliers(
             np.ascontiguousarray(measured, dtype=bool),
             np.ascontiguousarray(nb, dtype=np.int64),
             float(tol),
+            float(relative_tol),
         ),
         dtype=bool,
     )
