@@ -597,6 +597,66 @@ def test_two_pins_apart_are_two_loads_each_with_its_own_peak():
     assert np.isinf(peak[~support]).all() and (label[~support] == -1).all()
 
 
+def _ring_load(mesh, centre, r_in, r_out, load):
+    """A load's contact on the nodes between r_in and r_out (m) of centre (x, y): a flat
+    face's edge, as the k_peak rule marks it."""
+    r = np.linalg.norm(mesh.vertices[:, :2] - centre, axis=1)
+    ring = mesh.interior & (r >= r_in) & (r <= r_out)
+    return ring, r
+
+
+def test_a_flat_faces_middle_is_filled_from_the_contact_on_its_edge():
+    from bubble_rt.estimation.estimator import fill_load_hulls
+
+    mesh = Mesh.preset("medium")
+    ring, r = _ring_load(mesh, (0.004, -0.003), 0.007, 0.010, 3)
+    support = mesh.interior & (r < 0.014)
+    contact = ring.copy()
+    label = np.where(ring, 3, -1)
+    fill_load_hulls(contact, label, support, mesh.vertices, mesh.vertex_normals())
+    middle = support & (r < 0.005)  # well inside the polygon of the edge's nodes
+    assert middle.sum() >= 3 and contact[middle].all() and (label[middle] == 3).all()
+    # nothing beyond the edge's nodes, and the edge keeps its label
+    assert not contact[r > 0.0101].any()
+    assert (label[ring] == 3).all() and (label[~contact] == -1).all()
+
+
+def test_the_hull_fills_only_support_nodes_and_each_load_on_its_own():
+    from bubble_rt.estimation.estimator import fill_load_hulls
+
+    mesh = Mesh.preset("medium")
+    n = mesh.vertex_normals()
+    pins = []
+    for cx in (-0.013, 0.013):  # two pins, each a disc of nodes without its centre node
+        disc, r = _ring_load(mesh, (cx, 0.0), 0.0, 0.006, 0)
+        centre = int(np.argmin(np.where(disc, r, np.inf)))
+        pins.append((disc, centre))
+    (left, c_left), (right, c_right) = pins
+    x = mesh.vertices[:, 0]
+    gap = mesh.interior & (np.abs(x) < 0.005)
+    support = left | right | gap
+    contact = (left | right).copy()
+    contact[[c_left, c_right]] = False
+    label = np.where(left & contact, 0, np.where(right & contact, 1, -1))
+    fill_load_hulls(contact, label, support, mesh.vertices, n)
+    # each pin's centre joins its own load; the membrane between the pins is not contact
+    assert contact[c_left] and label[c_left] == 0 and contact[c_right] and label[c_right] == 1
+    assert np.array_equal(contact, left | right) and not contact[gap].any()
+    # a node inside a hull but off the support stays out
+    contact = left.copy()
+    contact[c_left] = False
+    label = np.where(contact, 0, -1)
+    fill_load_hulls(contact, label, left & contact, mesh.vertices, n)
+    assert not contact[c_left]
+    # a load of two nodes is left as it is
+    two = np.flatnonzero(left)[:2]
+    contact = np.zeros(mesh.n_nodes, bool)
+    contact[two] = True
+    label = np.where(contact, 0, -1)
+    fill_load_hulls(contact, label, support, mesh.vertices, n)
+    assert np.flatnonzero(contact).tolist() == sorted(two.tolist())
+
+
 def test_a_faint_second_bump_stays_under_the_main_peak():
     from bubble_rt.estimation.estimator import load_regions
 

@@ -17,7 +17,8 @@
    the support's highest peak, unless a saddle separates a second load that carries at least
    ``k_load`` of the first one's force). Pressures, multipliers and the disc are per area or
    physical lengths, so the patch does not shrink as the mesh refines
-   (docs/mesh-convergence.md). Each load region is one contact patch (``patch_label``).
+   (docs/mesh-convergence.md). Each load region is one contact patch (``patch_label``),
+   filled to the convex hull of its contact nodes (:func:`fill_load_hulls`).
 
 Nodal forces, contact pressure, contact mask and net force come from the refitted field.
 ``process(frame)`` runs an attached deformation tracker first.
@@ -319,6 +320,7 @@ class ForceEstimator:
             )
             contact &= pd >= self.config.k_peak * peak
             label[~contact] = -1
+            fill_load_hulls(contact, label, support, self.mesh.vertices, m.normals)
         return Estimate(
             node_forces=F,
             contact_pressure=P,
@@ -376,6 +378,91 @@ def _disc_matrix(
     cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
     B = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
     return sp.csr_matrix(sp.diags(1.0 / (B @ np.asarray(areas, dtype=np.float64))) @ B)
+
+
+def _hull_2d(P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(H, 2) vertices of the convex hull of points P (K, 2), counter-clockwise (Andrew's
+    monotone chain)."""
+    pts = sorted(map(tuple, P))
+
+    def half(seq: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        h: list[tuple[float, float]] = []
+        for q in seq:
+            while (
+                len(h) >= 2
+                and (
+                    (h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
+                    - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])
+                )
+                <= 0
+            ):
+                h.pop()
+            h.append(q)
+        return h
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=np.float64)
+
+
+def fill_load_hulls(
+    contact: NDArray[np.bool_],
+    label: NDArray[np.int64],
+    support: NDArray[np.bool_],
+    vertices: NDArray[np.float64],
+    normals: NDArray[np.float64],
+) -> None:
+    """Mark, in place, the support nodes inside the convex hull of each load's contact nodes
+    as that load's contact.
+
+    A rigid indenter's contact on the membrane is convex where the indenter is, and the
+    ``k_peak`` rule keeps a load's firmest nodes: around a curved indenter its middle, on a
+    flat face its edges, where the bent membrane's line loads are (the face's middle carries
+    only the gas's gauge pressure). The hull gives the face back its middle
+    (docs/evaluation.md, "A load's contact is convex"). Loads of fewer than three contact
+    nodes are left as they are; two loads (two pins) are filled each on its own.
+
+    Args:
+        contact: (N,) bool, the contact rule's nodes; updated.
+        label: (N,) each contact node's load, -1 elsewhere; updated.
+        support: (N,) bool, the nodes that carry force (the only ones filled).
+        vertices: (N, 3) m, the untouched mesh.
+        normals: (N, 3) outward unit normals; a load's hull is taken in the plane normal to
+            its contact nodes' mean normal.
+    """
+    for load in np.unique(label[contact]):
+        nodes = np.flatnonzero(label == load)
+        if len(nodes) < 3:
+            continue
+        free = np.flatnonzero(support & ~contact)
+        if len(free) == 0:
+            return
+        nx, ny, nz = normals[nodes].mean(axis=0)
+        # (3, 2): coordinates in the load's plane, e1 = n x (1, 0, 0) (or x (0, 1, 0) where n
+        # is near x), e2 = n x e1 (np.cross costs more than the whole hull on 3-vectors)
+        e1 = (
+            np.array([0.0, nz, -ny])
+            if abs(nx) < 0.9 * np.sqrt(nx * nx + ny * ny + nz * nz)
+            else np.array([-nz, 0.0, nx])
+        )
+        e1 /= np.sqrt(e1 @ e1)
+        n = np.array([nx, ny, nz]) / np.sqrt(nx * nx + ny * ny + nz * nz)
+        e2 = np.array(
+            [n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]]
+        )
+        to_plane = np.column_stack([e1, e2])
+        origin = vertices[nodes].mean(axis=0)
+        H = _hull_2d((vertices[nodes] - origin) @ to_plane)
+        if len(H) < 3:
+            continue  # collinear: no area to fill
+        Q = (vertices[free] - origin) @ to_plane
+        edge = np.concatenate([H[1:], H[:1]]) - H
+        # inside (or on) every counter-clockwise edge; 1e-12 m^2 admits nodes on the hull
+        cross = edge[None, :, 0] * (Q[:, None, 1] - H[None, :, 1]) - edge[None, :, 1] * (
+            Q[:, None, 0] - H[None, :, 0]
+        )
+        inside = free[(cross >= -1e-12).all(axis=1)]
+        contact[inside] = True
+        label[inside] = load
 
 
 def load_regions(
