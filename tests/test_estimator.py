@@ -657,6 +657,110 @@ def test_the_hull_fills_only_support_nodes_and_each_load_on_its_own():
     assert np.flatnonzero(contact).tolist() == sorted(two.tolist())
 
 
+def _hull_2d(P):
+    """(H, 2) vertices of the convex hull of points P (K, 2), counter-clockwise (Andrew's
+    monotone chain)."""
+    pts = sorted(map(tuple, P))
+
+    def half(seq):
+        h = []
+        for q in seq:
+            while (
+                len(h) >= 2
+                and (
+                    (h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
+                    - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])
+                )
+                <= 0
+            ):
+                h.pop()
+            h.append(q)
+        return h
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=np.float64)
+
+
+def _fill_load_hulls_reference(contact, label, support, vertices, normals):
+    """fill_load_hulls in NumPy (the implementation before cpp/load_hulls.cpp)."""
+    free_all = np.flatnonzero(support & ~contact)
+    for load in np.unique(label[contact]):
+        nodes = np.flatnonzero(label == load)
+        if len(nodes) < 3:
+            continue
+        origin = vertices[nodes].mean(axis=0)
+        # only free nodes near the load's bounding sphere can be inside its hull (x 1.5 in the
+        # squared radius: a node's offset along the normal, the dome's sagitta, is not in the
+        # plane the hull is taken in)
+        reach = 1.5 * ((vertices[nodes] - origin) ** 2).sum(axis=1).max()
+        free = free_all[((vertices[free_all] - origin) ** 2).sum(axis=1) <= reach]
+        free = free[~contact[free]]
+        if len(free) == 0:
+            continue
+        nx, ny, nz = normals[nodes].mean(axis=0)
+        # (3, 2): coordinates in the load's plane, e1 = n x (1, 0, 0) (or x (0, 1, 0) where n
+        # is near x), e2 = n x e1 (np.cross costs more than the whole hull on 3-vectors)
+        e1 = (
+            np.array([0.0, nz, -ny])
+            if abs(nx) < 0.9 * np.sqrt(nx * nx + ny * ny + nz * nz)
+            else np.array([-nz, 0.0, nx])
+        )
+        e1 /= np.sqrt(e1 @ e1)
+        n = np.array([nx, ny, nz]) / np.sqrt(nx * nx + ny * ny + nz * nz)
+        e2 = np.array(
+            [n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]]
+        )
+        to_plane = np.column_stack([e1, e2])
+        H = _hull_2d((vertices[nodes] - origin) @ to_plane)
+        if len(H) < 3:
+            continue  # collinear: no area to fill
+        Q = (vertices[free] - origin) @ to_plane
+        edge = np.concatenate([H[1:], H[:1]]) - H
+        # inside (or on) every counter-clockwise edge; 1e-12 m^2 admits nodes on the hull
+        cross = edge[None, :, 0] * (Q[:, None, 1] - H[None, :, 1]) - edge[None, :, 1] * (
+            Q[:, None, 0] - H[None, :, 0]
+        )
+        inside = free[(cross >= -1e-12).all(axis=1)]
+        contact[inside] = True
+        label[inside] = load
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fill_load_hulls_matches_the_numpy_reference(seed):
+    from bubble_rt.estimation.estimator import fill_load_hulls
+
+    mesh = Mesh.preset("medium" if seed % 2 else "fine")
+    rng = np.random.default_rng(seed)
+    V, n = mesh.vertices, mesh.vertex_normals()
+    contact = np.zeros(mesh.n_nodes, bool)
+    label = np.full(mesh.n_nodes, -1, np.int64)
+    for _ in range(rng.integers(1, 4)):  # loads of 1-12 scattered nodes near a centre
+        c = V[rng.choice(np.flatnonzero(mesh.interior))]
+        near = np.flatnonzero(mesh.interior & (np.linalg.norm(V - c, axis=1) < 0.012))
+        pick = rng.choice(near, size=min(len(near), rng.integers(1, 13)), replace=False)
+        contact[pick] = True
+        label[pick] = int(pick[0])
+    support = mesh.interior & (rng.random(mesh.n_nodes) < 0.8) | contact
+    want_c, want_l = contact.copy(), label.copy()
+    _fill_load_hulls_reference(want_c, want_l, support, V, n)
+    got_c, got_l = contact.copy(), label.copy()
+    fill_load_hulls(got_c, got_l, support, V, n)
+    assert np.array_equal(got_c, want_c) and np.array_equal(got_l, want_l)
+    assert (got_c & ~contact).any()  # each case fills something
+
+
+def test_fill_load_hulls_refuses_inconsistent_input():
+    from bubble_rt import _core
+
+    V = np.zeros((4, 3))
+    ok = np.zeros(4, bool)
+    lab = np.full(4, -1, np.int32)
+    with pytest.raises(ValueError, match="label and support"):
+        _core._fill_load_hulls(ok, np.full(3, -1, np.int32), ok, V, V)
+    with pytest.raises(ValueError, match="vertices and normals"):
+        _core._fill_load_hulls(ok, lab, ok, np.zeros((3, 3)), V)
+
+
 def test_a_faint_second_bump_stays_under_the_main_peak():
     from bubble_rt.estimation.estimator import load_regions
 

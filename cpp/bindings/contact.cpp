@@ -4,6 +4,7 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include "load_hulls.h"
 #include "load_regions.h"
 #include "numpy_views.h"
 
@@ -35,4 +36,26 @@ void bind_contact(py::module_& m) {
       py::arg("pd").noconvert(), py::arg("support").noconvert(), py::arg("indptr").noconvert(),
       py::arg("indices").noconvert(), py::arg("force").noconvert(), py::arg("k_peak"),
       py::arg("k_load"));
+
+  m.def(
+      "_fill_load_hulls",
+      [](const ArrB& contact, const ArrI& label, const ArrB& support, const ArrD& vertices,
+         const ArrD& normals) {
+        bubble::require(contact.ndim() == 1 && label.ndim() == 1 && support.ndim() == 1,
+                        "contact, label and support must be 1-D");
+        using BoolMap = Eigen::Map<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>;
+        const BoolMap c(contact.data(), contact.shape(0));
+        const BoolMap s(support.data(), support.shape(0));
+        const Eigen::Map<const Eigen::VectorXi> l(label.data(), label.shape(0));
+        const auto v = bubble::bindings::map_n3(vertices, "vertices");
+        const auto nrm = bubble::bindings::map_n3(normals, "normals");
+        bubble::LoadHulls r;
+        {
+          py::gil_scoped_release release;
+          r = bubble::fill_load_hulls(c, l, s, v, nrm);
+        }
+        return py::make_tuple(py::cast(std::move(r.contact)), py::cast(std::move(r.label)));
+      },
+      py::arg("contact").noconvert(), py::arg("label").noconvert(), py::arg("support").noconvert(),
+      py::arg("vertices").noconvert(), py::arg("normals").noconvert());
 }

@@ -380,30 +380,6 @@ def _disc_matrix(
     return sp.csr_matrix(sp.diags(1.0 / (B @ np.asarray(areas, dtype=np.float64))) @ B)
 
 
-def _hull_2d(P: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(H, 2) vertices of the convex hull of points P (K, 2), counter-clockwise (Andrew's
-    monotone chain)."""
-    pts = sorted(map(tuple, P))
-
-    def half(seq: list[tuple[float, float]]) -> list[tuple[float, float]]:
-        h: list[tuple[float, float]] = []
-        for q in seq:
-            while (
-                len(h) >= 2
-                and (
-                    (h[-1][0] - h[-2][0]) * (q[1] - h[-2][1])
-                    - (h[-1][1] - h[-2][1]) * (q[0] - h[-2][0])
-                )
-                <= 0
-            ):
-                h.pop()
-            h.append(q)
-        return h
-
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1], dtype=np.float64)
-
-
 def fill_load_hulls(
     contact: NDArray[np.bool_],
     label: NDArray[np.int64],
@@ -421,6 +397,8 @@ def fill_load_hulls(
     (docs/evaluation.md, "A load's contact is convex"). Loads of fewer than three contact
     nodes are left as they are; two loads (two pins) are filled each on its own.
 
+    Computed in C++ (cpp/load_hulls.h); tests/test_estimator.py holds a Python reference.
+
     Args:
         contact: (N,) bool, the contact rule's nodes; updated.
         label: (N,) each contact node's load, -1 elsewhere; updated.
@@ -429,40 +407,17 @@ def fill_load_hulls(
         normals: (N, 3) outward unit normals; a load's hull is taken in the plane normal to
             its contact nodes' mean normal.
     """
-    for load in np.unique(label[contact]):
-        nodes = np.flatnonzero(label == load)
-        if len(nodes) < 3:
-            continue
-        free = np.flatnonzero(support & ~contact)
-        if len(free) == 0:
-            return
-        nx, ny, nz = normals[nodes].mean(axis=0)
-        # (3, 2): coordinates in the load's plane, e1 = n x (1, 0, 0) (or x (0, 1, 0) where n
-        # is near x), e2 = n x e1 (np.cross costs more than the whole hull on 3-vectors)
-        e1 = (
-            np.array([0.0, nz, -ny])
-            if abs(nx) < 0.9 * np.sqrt(nx * nx + ny * ny + nz * nz)
-            else np.array([-nz, 0.0, nx])
-        )
-        e1 /= np.sqrt(e1 @ e1)
-        n = np.array([nx, ny, nz]) / np.sqrt(nx * nx + ny * ny + nz * nz)
-        e2 = np.array(
-            [n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2], n[0] * e1[1] - n[1] * e1[0]]
-        )
-        to_plane = np.column_stack([e1, e2])
-        origin = vertices[nodes].mean(axis=0)
-        H = _hull_2d((vertices[nodes] - origin) @ to_plane)
-        if len(H) < 3:
-            continue  # collinear: no area to fill
-        Q = (vertices[free] - origin) @ to_plane
-        edge = np.concatenate([H[1:], H[:1]]) - H
-        # inside (or on) every counter-clockwise edge; 1e-12 m^2 admits nodes on the hull
-        cross = edge[None, :, 0] * (Q[:, None, 1] - H[None, :, 1]) - edge[None, :, 1] * (
-            Q[:, None, 0] - H[None, :, 0]
-        )
-        inside = free[(cross >= -1e-12).all(axis=1)]
-        contact[inside] = True
-        label[inside] = load
+    from bubble_rt import _core
+
+    c, lab = _core._fill_load_hulls(
+        np.ascontiguousarray(contact, dtype=bool),
+        np.ascontiguousarray(label, dtype=np.int32),
+        np.ascontiguousarray(support, dtype=bool),
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(normals, dtype=np.float64),
+    )
+    contact[:] = c
+    label[:] = lab
 
 
 def load_regions(
