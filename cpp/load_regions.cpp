@@ -90,7 +90,7 @@ LoadRegions load_regions(const Eigen::Ref<const Eigen::VectorXd>& pd,
                          const Eigen::Ref<const Eigen::VectorXi>& adjacency_ptr,
                          const Eigen::Ref<const Eigen::VectorXi>& adjacency_idx,
                          const Eigen::Ref<const Eigen::VectorXd>& force, double k_peak,
-                         double k_load) {
+                         double k_load, double join_pa) {
   const Eigen::Index n = pd.size();
   require(support.size() == n && force.size() == n, "pd, support and force must have N entries");
   require(adjacency_ptr.size() == n + 1, "adjacency_ptr must have N + 1 entries");
@@ -112,7 +112,7 @@ LoadRegions load_regions(const Eigen::Ref<const Eigen::VectorXd>& pd,
       int lo = regions.find(i), hi = regions.find(j);
       if (lo == hi) continue;
       if (regions.peak(lo) >= regions.peak(hi)) std::swap(lo, hi);
-      const bool apart = pd(i) < k_peak * regions.peak(lo) &&
+      const bool apart = pd(i) < k_peak * regions.peak(lo) && pd(i) < join_pa &&
                          regions.core_force(lo) >= k_load * regions.strongest();
       if (apart) {
         for (int node : regions.members(lo)) {

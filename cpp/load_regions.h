@@ -6,10 +6,13 @@
 // when its core force (its nodes at k_peak of its peak) is at least k_load times the strongest
 // core force so far (the main load's, by then). Otherwise, and where they meet above that level,
 // they are one load, measured against the higher peak. Two pins pressing apart meet far below
-// either peak; the bumps around one dent meet near theirs or carry little force.
+// either peak; the bumps around one dent meet near theirs or carry little force. Regions that
+// meet where pd is at least join_pa are one load too: a flat face's loaded edges meet across
+// its middle, which carries the gas's gauge pressure, while free membrane carries none.
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 
 namespace bubble {
 
@@ -20,13 +23,14 @@ struct LoadRegions {
 
 // pd: (N,) Pa, disc-averaged normal pressure; support: (N,) the nodes that carry force;
 // adjacency_ptr / adjacency_idx: the mesh's N x N edge adjacency in CSR form; force: (N,) N,
-// each node's normal force where it passes the paper's threshold, else 0. Throws InputError on
+// each node's normal force where it passes the paper's threshold, else 0; join_pa: Pa (see
+// above; inf: never). Throws InputError on
 // inconsistent shapes or an index out of range.
 LoadRegions load_regions(const Eigen::Ref<const Eigen::VectorXd>& pd,
                          const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& support,
                          const Eigen::Ref<const Eigen::VectorXi>& adjacency_ptr,
                          const Eigen::Ref<const Eigen::VectorXi>& adjacency_idx,
                          const Eigen::Ref<const Eigen::VectorXd>& force, double k_peak,
-                         double k_load);
+                         double k_load, double join_pa = std::numeric_limits<double>::infinity());
 
 }  // namespace bubble

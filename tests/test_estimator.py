@@ -761,6 +761,39 @@ def test_fill_load_hulls_refuses_inconsistent_input():
         _core._fill_load_hulls(ok, lab, ok, np.zeros((3, 3)), V)
 
 
+def test_a_flat_faces_edges_are_one_load_and_two_pins_two():
+    """A flat face: line loads on its edges (30 kPa, 12 kPa where the edges meet), the gas's
+    gauge pressure (5 kPa) across its middle. The two edges meet below half their peak and
+    each carries a quarter of the force, so without ``join_pa`` they were two loads; they meet
+    above twice the gauge pressure, which free membrane between two pins never carries."""
+    from bubble_rt.estimation.estimator import EstimatorConfig, load_regions
+
+    mesh = Mesh.preset("medium")
+    xy = mesh.vertices[:, :2]
+    r, theta = np.linalg.norm(xy, axis=1), np.arctan2(xy[:, 1], xy[:, 0])
+    ring = (r >= 0.007) & (r <= 0.0105)
+    pd = np.where(ring, np.where(np.abs(np.sin(theta)) > 0.5, 30e3, 12e3), 0.0)
+    pd[r < 0.007] = 5e3
+    support = mesh.interior & (r < 0.012)
+    force = pd * mesh.lumped_areas()
+    top, bottom = ring & (np.sin(theta) > 0.5), ring & (np.sin(theta) < -0.5)
+    assert top.sum() >= 2 and bottom.sum() >= 2
+    gauge = 5e3
+    join_pa = EstimatorConfig().k_join * gauge
+    for join, one in ((np.inf, False), (join_pa, True)):
+        _, label = load_regions(pd, support, mesh.adjacency(), force, 0.5, 0.25, join)
+        assert (np.unique(label[top]).size == 1) and (np.unique(label[bottom]).size == 1)
+        assert (label[top][0] == label[bottom][0]) == one, join
+    # two pins pressing apart meet where the membrane is free: still two loads
+    pins = _bumps(mesh, [(-0.0125, 0.0, 40e3), (0.0125, 0.0, 30e3)])
+    sup = mesh.interior & (pins > 100.0)
+    _, label = load_regions(
+        pins, sup, mesh.adjacency(), pins * mesh.lumped_areas(), 0.5, 0.25, join_pa
+    )
+    x = mesh.vertices[:, 0]
+    assert label[np.argmax(np.where(x < 0, pins, 0))] != label[np.argmax(np.where(x > 0, pins, 0))]
+
+
 def test_a_faint_second_bump_stays_under_the_main_peak():
     from bubble_rt.estimation.estimator import load_regions
 
@@ -786,7 +819,7 @@ def test_the_fragments_of_one_dent_are_one_load():
     assert np.unique(label[support]).size == 1
 
 
-def _load_regions_reference(pd, support, adjacency, force, k_peak, k_load):  # type: ignore[no-untyped-def]
+def _load_regions_reference(pd, support, adjacency, force, k_peak, k_load, join_pa=np.inf):  # type: ignore[no-untyped-def]
     """The Python statement of ``load_regions`` (cpp/load_regions.h) the C++ is tested against."""
 
     peak_of = np.full(pd.size, np.inf)
@@ -822,7 +855,8 @@ def _load_regions_reference(pd, support, adjacency, force, k_peak, k_load):  # t
             if ri == rj:
                 continue
             lo, hi = (ri, rj) if peak[ri] < peak[rj] else (rj, ri)
-            if level[i] < k_peak * peak[lo] and core_force[lo] >= k_load * strongest:
+            apart = level[i] < k_peak * peak[lo] and level[i] < join_pa
+            if apart and core_force[lo] >= k_load * strongest:
                 for node in members[lo]:
                     if label[node] < 0:
                         peak_of[node], label[node] = peak[lo], lo
@@ -855,13 +889,17 @@ def test_load_regions_match_the_python_statement(seed):
     force = np.where(pd > 1e3, pd * mesh.lumped_areas(), 0.0)
     adjacency = mesh.adjacency()
     loads = []
-    for k_load in (0.0, 0.25, 1.0):
-        peak, label = load_regions(pd, support, adjacency, force, 0.5, k_load)
-        ref_peak, ref_label = _load_regions_reference(pd, support, adjacency, force, 0.5, k_load)
+    for k_load, join_pa in ((0.0, np.inf), (0.25, np.inf), (1.0, np.inf), (0.0, 0.0)):
+        peak, label = load_regions(pd, support, adjacency, force, 0.5, k_load, join_pa)
+        ref_peak, ref_label = _load_regions_reference(
+            pd, support, adjacency, force, 0.5, k_load, join_pa
+        )
         np.testing.assert_array_equal(peak, ref_peak)
         np.testing.assert_array_equal(label, ref_label)
-        loads.append(np.unique(label[support]).size)
-    assert loads[0] >= 2  # the case exercises separate loads
+        loads.append(label)
+    assert np.unique(loads[0][support]).size >= 2  # the case exercises separate loads
+    # and loads joined where they meet above join_pa
+    assert np.unique(loads[3][support]).size < np.unique(loads[0][support]).size
 
 
 def test_load_regions_refuse_inconsistent_input():

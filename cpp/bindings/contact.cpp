@@ -4,6 +4,8 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <limits>
+
 #include "load_hulls.h"
 #include "load_regions.h"
 #include "numpy_views.h"
@@ -17,7 +19,7 @@ void bind_contact(py::module_& m) {
   m.def(
       "_load_regions",
       [](const ArrD& pd, const ArrB& support, const ArrI& indptr, const ArrI& indices,
-         const ArrD& force, double k_peak, double k_load) {
+         const ArrD& force, double k_peak, double k_load, double join_pa) {
         auto p = bubble::bindings::map_n(pd, "pd");
         auto f = bubble::bindings::map_n(force, "force");
         bubble::require(support.ndim() == 1 && indptr.ndim() == 1 && indices.ndim() == 1,
@@ -29,13 +31,13 @@ void bind_contact(py::module_& m) {
         bubble::LoadRegions r;
         {
           py::gil_scoped_release release;
-          r = bubble::load_regions(p, s, ptr, idx, f, k_peak, k_load);
+          r = bubble::load_regions(p, s, ptr, idx, f, k_peak, k_load, join_pa);
         }
         return py::make_tuple(py::cast(std::move(r.peak)), py::cast(std::move(r.label)));
       },
       py::arg("pd").noconvert(), py::arg("support").noconvert(), py::arg("indptr").noconvert(),
       py::arg("indices").noconvert(), py::arg("force").noconvert(), py::arg("k_peak"),
-      py::arg("k_load"));
+      py::arg("k_load"), py::arg("join_pa") = std::numeric_limits<double>::infinity());
 
   m.def(
       "_fill_load_hulls",

@@ -84,6 +84,11 @@ class EstimatorConfig:
             nodes at ``k_peak`` of its peak) carries at least this fraction of the strongest
             load's core force; otherwise it is measured against the higher peak (-). Chosen
             on the calibration seeds (docs/evaluation.md, "Loads of their own").
+        k_join: two regions that meet where the disc pressure is at least this multiple of
+            the gas's gauge pressure (rest plus change) are one load, whatever ``k_load``
+            says (-). A face pressed flat carries the gauge pressure between its loaded edges;
+            free membrane between two pins carries none. Chosen on the calibration seeds
+            (docs/evaluation.md, "One face, one load").
         support_tol: support rule (-): a node carries force when its multiplier is within this
             fraction of its bound, ``||y_i|| >= (1 - support_tol) k_f`` (``support``).
         peak_radius_m: the ``k_peak`` rule compares normal pressures averaged over the nodes
@@ -112,6 +117,7 @@ class EstimatorConfig:
     k_linear: float = ESTIMATOR_PARAMS["k_linear"].default
     k_peak: float = 0.5
     k_load: float = 0.25
+    k_join: float = 2.0
     support_tol: float = ESTIMATOR_PARAMS["support_tol"].default
     peak_radius_m: float = ESTIMATOR_PARAMS["peak_radius_m"].default
     inflation_pa: float = SIM.bubble.gauge_pressure_pa
@@ -130,6 +136,7 @@ class EstimatorConfig:
         _validate.finite_scalar("k_linear", self.k_linear)
         _validate.finite_scalar("k_peak", self.k_peak)
         _validate.finite_scalar("k_load", self.k_load)
+        _validate.finite_scalar("k_join", self.k_join)
         for key in ("support_tol", "peak_radius_m", "nonlinear_iterations"):
             problem = ESTIMATOR_PARAMS[key].range.problem(getattr(self, key))
             if problem is not None:
@@ -316,7 +323,13 @@ class ForceEstimator:
             pd = self.disc_pressure(p_rule)
             force = np.where(contact, np.clip(p_rule, 0.0, None) * m.areas, 0.0)
             peak, label = load_regions(
-                pd, support, self._adjacency, force, self.config.k_peak, self.config.k_load
+                pd,
+                support,
+                self._adjacency,
+                force,
+                self.config.k_peak,
+                self.config.k_load,
+                self.config.k_join * (self.inflation_pa + dp),
             )
             contact &= pd >= self.config.k_peak * peak
             label[~contact] = -1
@@ -427,6 +440,7 @@ def load_regions(
     force: NDArray[np.float64],
     k_peak: float,
     k_load: float,
+    join_pa: float = float("inf"),
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Each support node's load: the peak its contact threshold refers to, and its region.
 
@@ -450,6 +464,8 @@ def load_regions(
         force: (N,) N, each node's normal force where it passes the paper's threshold, else 0.
         k_peak: the contact threshold's fraction of the load's peak (EstimatorConfig).
         k_load: the core force fraction that makes a load of its own (EstimatorConfig).
+        join_pa: Pa; two regions meeting at a node whose ``pd`` is at least this are one
+            load (EstimatorConfig.k_join times the gauge pressure; inf: never).
 
     Returns:
         ((N,) peak in Pa, inf off the support; (N,) region label, -1 off the support).
@@ -464,5 +480,6 @@ def load_regions(
         np.ascontiguousarray(force, dtype=np.float64),
         float(k_peak),
         float(k_load),
+        float(join_pa),
     )
     return np.asarray(peak, dtype=np.float64), np.asarray(label, dtype=np.int64)
