@@ -171,6 +171,35 @@ def test_depth_noise_rounds_to_the_depth_unit():
     assert len(np.unique(np.round(steps))) >= 2  # the noise still moves pixels across a step
 
 
+def test_correlated_noise_has_unit_variance_and_the_requested_correlation():
+    # Gaussian-blurred white noise: its autocorrelation is a Gaussian of std corr_px * sqrt(2),
+    # 0.78 at a lag of corr_px and 0.37 at 2 corr_px.
+    rng = np.random.default_rng(1)
+    f = effects.correlated_normal(rng, (400, 600), 4.5).astype(np.float64)
+    assert abs(f.std() - 1.0) < 0.05
+    for lag, expect in ((4, np.exp(-(4**2) / (4 * 4.5**2))), (9, np.exp(-(9**2) / (4 * 4.5**2)))):
+        r = np.mean(f[:, lag:] * f[:, :-lag]) / f.var()
+        assert abs(r - expect) < 0.05, (lag, r, expect)
+
+
+def test_depth_noise_survives_smoothing_only_when_correlated():
+    # What the estimator sees at a node is the depth averaged over millimetres: white noise
+    # averages away there, the D405's (correlated over its stereo window) does not.
+    import cv2
+
+    z = np.full((300, 300), 0.08, np.float32)
+    white = {"sigma_m": 5e-5, "sigma_per_m2": 0.0, "step_m": 0.0}
+    corr = {**white, "sigma_m": 0.0, "corr_sigma_m": 5e-5, "corr_px": 4.5}
+    rms = {}
+    for name, p in (("white", white), ("corr", corr)):
+        d = effects.depth_noise(z, p, np.random.default_rng(2), 0.0).astype(np.float64) - 0.08
+        assert abs(d.std() - 5e-5) < 3e-6
+        rms[name] = cv2.GaussianBlur(d, (0, 0), 20.0)[40:-40, 40:-40].std()
+    # Smoothed over 20 px: white falls to 5e-5 / (2 sqrt(pi) 20) = 0.7 um, the correlated
+    # part to 5e-5 * 4.5 / sqrt(4.5^2 + 20^2) = 11 um.
+    assert rms["white"] < 1.5e-6 and 8e-6 < rms["corr"] < 14e-6
+
+
 def ramp_depth() -> np.ndarray:
     """A plane tilted from 50 mm (left) to 100 mm (right), 480 x 640."""
     return np.tile(np.linspace(0.05, 0.10, 640, dtype=np.float32), (480, 1))

@@ -15,9 +15,16 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
     "gas_compression": {},
     # Camera effects, matched to the real D405 of the untouched Punyo frames
     # (docs/sim-noise.md; `python3 -m bubble_rt.sim.sensor_stats` measures both sides).
-    # depth_noise: temporal sigma = sigma_m + sigma_per_m2 z^2 (m), then rounded to the depth
-    # unit step_m; the real sensor is flat over 60-100 mm, not the textbook z^2.
-    "depth_noise": {"sigma_m": 4.5e-5, "sigma_per_m2": 0.0, "step_m": 1.0e-4},
+    # depth_noise: temporal sigma = sigma_m + sigma_per_m2 z^2 (m) per pixel, plus a part of
+    # RMS corr_sigma_m (m) correlated over corr_px pixels, then rounded to the depth unit
+    # step_m; the real sensor is flat over 60-100 mm, not the textbook z^2.
+    "depth_noise": {
+        "sigma_m": 1.0e-5,
+        "sigma_per_m2": 0.0,
+        "step_m": 1.0e-4,
+        "corr_sigma_m": 4.8e-5,
+        "corr_px": 4.5,
+    },
     # depth_dropouts: holes where the stereo match fails; probability f + (1 - f) *
     # sigmoid((near_m - z) / near_width_m), f = fraction falling to 0 at far_m (m); blobs of
     # blob_px fixed per scene, edges perturbed per frame by flicker; outlier_fraction of the

@@ -54,16 +54,39 @@ def fast_normal(rng: np.random.Generator, shape: tuple[int, ...]) -> NDArray[np.
 def depth_noise(
     depth: NDArray[np.float32], p: dict[str, float], rng: np.random.Generator, t: float
 ) -> NDArray[np.float32]:
-    """Gaussian noise with sigma = sigma_m + sigma_per_m2 * z^2 (m; the z^2 term is the
-    textbook stereo law, the constant what the D405 shows at 6-10 cm), then the depth rounded
-    to the sensor's depth unit ``step_m`` (the D405 reports 0.1 mm; 0: none)."""
+    """Gaussian noise of two parts, then the depth rounded to the sensor's depth unit
+    ``step_m`` (the D405 reports 0.1 mm; 0: none):
+
+    - per pixel, sigma = sigma_m + sigma_per_m2 * z^2 (m; the z^2 term is the textbook stereo
+      law, the constant what the D405 shows at 6-10 cm);
+    - correlated over ``corr_px`` pixels (a Gaussian kernel's standard deviation), of RMS
+      ``corr_sigma_m`` (m): a stereo match errs over its whole window, so the D405's noise
+      survives smoothing over millimetres, where the estimator reads it (docs/sim-noise.md).
+    """
     z = np.asarray(depth, dtype=np.float32)
     sigma = np.float32(p.get("sigma_m", 0.0)) + np.float32(p["sigma_per_m2"]) * z * z
     noisy = z + fast_normal(rng, z.shape) * sigma
+    if p.get("corr_sigma_m", 0.0) > 0:
+        noisy += np.float32(p["corr_sigma_m"]) * correlated_normal(rng, z.shape, p["corr_px"])
     step = np.float32(p.get("step_m", 0.0))
     if step > 0:
         noisy = np.round(noisy / step) * step
     return np.where((z > 0) & (noisy > 0), noisy, np.float32(0.0)).astype(np.float32)
+
+
+def correlated_normal(
+    rng: np.random.Generator, shape: tuple[int, ...], corr_px: float
+) -> NDArray[np.float32]:
+    """A unit-variance Gaussian field (float32) correlated over ``corr_px`` pixels: white
+    noise blurred by a Gaussian kernel of that standard deviation, divided by the blur's
+    exact gain on white noise (the sum of the squared kernel weights, per axis)."""
+    import cv2
+
+    s = max(float(corr_px), 0.3)
+    k = 2 * int(np.ceil(4.0 * s)) + 1
+    g = cv2.getGaussianKernel(k, s, cv2.CV_64F)[:, 0]
+    white = fast_normal(rng, shape)
+    return np.asarray(cv2.GaussianBlur(white, (k, k), s) / float(np.sum(g * g)), np.float32)
 
 
 def _smooth_field(rng: np.random.Generator, shape: tuple[int, int], cell_px: float) -> NDArray:

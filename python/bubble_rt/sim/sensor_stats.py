@@ -52,6 +52,13 @@ TEXTURED_LEVELS = 20.0
 TEXTURELESS_LEVELS = 10.0
 #: Width (px) of the band around invalid pixels counted as a depth edge.
 EDGE_BAND_PX = 5
+#: Scales (m, a Gaussian's standard deviation on the membrane) over which the depth noise is
+#: also measured smoothed: the estimator reads depth at nodes 4-7 mm apart, where a stereo
+#: camera's noise, correlated over its matching window, no longer averages away.
+SMOOTH_SCALES_M: tuple[float, ...] = (1e-3, 2e-3, 4e-3)
+#: Pixels (px) cut from the membrane region's edge for the smoothed noise: a smoothing window
+#: there reaches past the membrane.
+SMOOTH_MARGIN_PX = 30
 
 
 @dataclass
@@ -66,6 +73,11 @@ class SensorStats:
         noise_c: least-squares c of sigma = c z^2 over the bins (1/m; sigma and z in m).
         noise_exponent: the fitted p of sigma ~ z^p over the bins (the stereo law: 2).
         noise_median_mm: RMS temporal depth std over all steadily valid membrane pixels.
+        smoothed_noise_mm: per scale of SMOOTH_SCALES_M, the RMS of each frame's deviation
+            from the surface after a Gaussian smoothing of that standard deviation on the
+            membrane (holes and jumps left out of the average), over the region less
+            SMOOTH_MARGIN_PX: white noise falls as 1 / scale, noise correlated over a
+            stereo window much more slowly.
         step_mm: median nonzero frame-to-frame depth change under 0.5 mm (with a depth unit,
             the unit), mm.
         hole_fraction: mean fraction of membrane pixels invalid per frame.
@@ -103,6 +115,7 @@ class SensorStats:
     noise_c: float
     noise_exponent: float
     noise_median_mm: float
+    smoothed_noise_mm: list[float]
     step_mm: float
     hole_fraction: float
     hole_by_range: list[float]
@@ -210,9 +223,37 @@ def depth_stats(
         "region_px": int(region.sum()),
         **_by_range(D, surf, sd, full, inv, jump, nominal, region),
         "noise_median_mm": _rms(sd[full]) * 1e3 if full.any() else float("nan"),
+        "smoothed_noise_mm": _smoothed_noise(
+            D, valid & (np.abs(dev) <= jump_m), surf, nominal, region, camera
+        ),
         **_hole_stats(inv, region),
         **_jump_stats(valid, jump, dev, steady, nominal, region),
     }
+
+
+def _smoothed_noise(
+    D: NDArray, ok: NDArray, surf: NDArray, nominal: NDArray, region: NDArray, camera: Camera
+) -> list[float]:
+    """``smoothed_noise_mm`` of SensorStats: per scale, the RMS (mm) of the frames' smoothed
+    deviations from the surface (a normalised convolution over the valid pixels)."""
+    import cv2
+
+    core = cv2.erode(region.astype(np.uint8), np.ones((2 * SMOOTH_MARGIN_PX + 1,) * 2, np.uint8))
+    m_per_px = float(np.median(nominal[region])) / float(camera.K[0, 0])
+    out = []
+    for scale in SMOOTH_SCALES_M:
+        s = scale / m_per_px
+        sq, n = 0.0, 0
+        for d, v in zip(D, ok, strict=True):
+            w = v.astype(np.float64)
+            num = cv2.GaussianBlur(np.where(v, d - surf, 0.0), (0, 0), s)
+            den = cv2.GaussianBlur(w, (0, 0), s)
+            keep = (core > 0) & (den > 0.3)
+            x = num[keep] / den[keep]
+            sq += float(np.sum(x * x))
+            n += x.size
+        out.append(float(np.sqrt(sq / n)) * 1e3 if n else float("nan"))
+    return out
 
 
 def _by_range(
@@ -475,6 +516,11 @@ def table(real: SensorStats, sims: dict[str, SensorStats]) -> str:
     for z in (62.5, 72.5, 82.5, 92.5, 97.5):
         add(f"depth noise at {z:.0f} mm (mm)", lambda s, z=z: f"{s.noise_at(z):.3f}")
     add("depth noise, all pixels, RMS (mm)", lambda s: f"{s.noise_median_mm:.3f}")
+    for i, scale in enumerate(SMOOTH_SCALES_M):
+        add(
+            f"depth noise smoothed over {scale * 1e3:.0f} mm, RMS (mm)",
+            lambda s, i=i: f"{s.smoothed_noise_mm[i]:.4f}",
+        )
     add("typical depth step (mm)", lambda s: f"{s.step_mm:.3f}")
     add("c in sigma = c z^2 (1/m)", lambda s: f"{s.noise_c:.4f}")
     add("fitted p in sigma ~ z^p", lambda s: f"{s.noise_exponent:.1f}")
