@@ -115,3 +115,18 @@ def test_site_builds_the_generated_page() -> None:
     site = (ROOT / "mkdocs.yml").read_text()
     assert "docs/hooks/config_page.py" in site
     assert re.search(r"^\s+- Configuration: configuration\.md$", site, re.MULTILINE)
+
+
+def test_simulator_effects_table_states_the_defaults():
+    # docs/simulator.md's table of effects is written by hand: every effect with every
+    # parameter at its EFFECT_DEFAULTS value (it had kept the pre-D405 defaults for a while).
+    from bubble_rt.sim.effect_names import EFFECT_DEFAULTS
+
+    text = (ROOT / "docs" / "simulator.md").read_text()
+    rows = {m[1]: m[2] for m in re.finditer(r"^\| `([a-z_]+)` \| ([^|]*) \|", text, re.M)}
+    for effect, params in EFFECT_DEFAULTS.items():
+        assert effect in rows, f"{effect} missing from docs/simulator.md"
+        written = {
+            k: float(v) for k, v in re.findall(r"`([a-z_0-9]+)` \(([-0-9.e+]+)\)", rows[effect])
+        }
+        assert written == pytest.approx(params), effect
