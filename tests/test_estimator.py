@@ -37,7 +37,7 @@ def test_default_config():
     c = EstimatorConfig()
     # k_u, k_const, k_linear, nu and thickness are the paper's; E and k_f were chosen for the
     # inflated model + refit on the calibration seeds.
-    assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.045, 537592.0, 2000.0, 2.0, 0.5)
+    assert (c.k_f, c.k_u, c.k_const, c.k_linear, c.k_peak) == (0.05, 537592.0, 2000.0, 2.0, 0.5)
     assert c.material == Material(0.8e6, 0.5, 0.65e-3)
     assert c.nonlinear_iterations == 2
     assert (c.inflation_pa, c.ambient_pa) == (5000.0, 101325.0)

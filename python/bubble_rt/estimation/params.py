@@ -55,7 +55,7 @@ ESTIMATOR_PARAMS: dict[str, EstimatorParam] = {
     p.key: p
     for p in (
         EstimatorParam(
-            "k_f", 0.045, "force sparsity weight", ParamRange(1e-4, 1e3, "1/N"), "k_f", live=True
+            "k_f", 0.05, "force sparsity weight", ParamRange(1e-4, 1e3, "1/N"), "k_f", live=True
         ),
         EstimatorParam(
             "k_u",
