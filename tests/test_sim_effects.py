@@ -96,9 +96,13 @@ def test_depth_dropouts_change_only_depth(base):
 def test_rgb_noise_changes_only_rgb(base):
     rgb, depth, p, _ = images(run('["rgb_noise"]')[1])
     assert np.array_equal(depth, base[1]) and np.array_equal(p, base[2])
-    d = rgb.astype(float) - base[0].astype(float)
+    # The noise is what two seeds' frames do not share (the mosaic's interpolation error on
+    # the texture's sharp dots they do). Per photosite sigma; demosaicing and the denoiser
+    # leave 0.6-0.8 of it on the membrane.
+    other = images(run('["rgb_noise"]', seed=1)[1])[0]
+    d = (rgb.astype(float) - other.astype(float)) / np.sqrt(2)
     sigma = effects_defaults("rgb_noise")["sigma"]
-    assert 0.85 * sigma < d[base[1] > 0].std() < 1.1 * sigma
+    assert 0.5 * sigma < d[base[1] > 0].std() < 0.95 * sigma
 
 
 def test_exposure_drift_changes_only_rgb(base):
@@ -283,12 +287,42 @@ def test_depth_jumps_change_only_depth_and_are_seeded(base):
     assert np.array_equal(a[1], b[1]) and not np.array_equal(a[1], c[1])
 
 
-def test_rgb_noise_is_correlated_across_channels_and_neighbours():
+def test_rgb_noise_is_a_demosaiced_mosaics_noise():
+    # On a flat image: each pixel's noise is shared with its neighbours both ways (the D405:
+    # 0.2 on its textured membrane, more on flat areas) and with its other channels (0.4-0.6):
+    # white noise has neither, the former model had no vertical correlation.
     rgb = np.full((300, 300, 3), 128, np.uint8)
     p = effects_defaults("rgb_noise")
     d = effects.rgb_noise(rgb, p, np.random.default_rng(0), 0.0).astype(float) - 128
-    ch = np.corrcoef(d[..., 0].ravel(), d[..., 1].ravel())[0, 1]
-    h = np.corrcoef(d[:, :-1, 1].ravel(), d[:, 1:, 1].ravel())[0, 1]
-    v = np.corrcoef(d[:-1, :, 1].ravel(), d[1:, :, 1].ravel())[0, 1]
-    assert abs(ch - p["channel_corr"]) < 0.05
-    assert abs(h - p["h_corr"]) < 0.05 and abs(v) < 0.03
+    sd = d.std(axis=(0, 1))
+    assert abs(d.mean()) < 0.1
+    assert np.all((0.45 * p["sigma"] < sd) & (sd < 0.8 * p["sigma"]))
+    assert 0.4 < np.corrcoef(d[..., 0].ravel(), d[..., 1].ravel())[0, 1] < 0.8
+    for c in range(3):
+        h = np.corrcoef(d[:, :-1, c].ravel(), d[:, 1:, c].ravel())[0, 1]
+        v = np.corrcoef(d[:-1, :, c].ravel(), d[1:, :, c].ravel())[0, 1]
+        assert 0.3 < h < 0.65 and 0.3 < v < 0.65
+
+
+def test_rgb_noise_is_stronger_on_edges_than_on_flat_areas():
+    # The denoiser smooths flat areas and keeps edges: the D405's grey noise is 1.7x stronger
+    # on edges than on flat areas (docs/sim-noise.md), and the optical flow reads the edges.
+    img = np.full((200, 200, 3), 60, np.uint8)
+    img[:, (np.arange(200) // 8) % 2 == 1] = 160
+    p = effects_defaults("rgb_noise")
+    rng = np.random.default_rng(1)
+    out = np.stack([effects.rgb_noise(img, p, rng, 0.0).astype(float) for _ in range(30)])
+    sd = out.std(axis=0).mean(axis=2)
+    x = np.arange(200) % 8
+    mid = (x == 3) | (x == 4)
+    assert sd[:, (x == 0) | (x == 7)].mean() > 1.3 * sd[:, mid].mean()
+    assert np.abs(out.mean(axis=0) - img).mean() < 3.0  # the mosaic keeps the image
+    raw = effects.rgb_noise(img, dict(p, denoise_levels=0.0), rng, 0.0).astype(float) - img
+    assert raw[:, mid].std() > 1.3 * sd[:, mid].mean()  # without the denoiser, no such gap
+
+
+def test_rgb_noise_on_a_grey_image():
+    grey = np.full((100, 100), 128, np.uint8)
+    out = effects.rgb_noise(grey, effects_defaults("rgb_noise"), np.random.default_rng(0), 0.0)
+    assert out.shape == grey.shape and out.dtype == np.uint8
+    assert 0.5 < (out.astype(float) - 128).std() < 4.0

@@ -96,6 +96,11 @@ def test_error_names_too_few_sim_nodes():
     expect_error("[sensor]\nsim_nodes = 5\n" + BASE, "sensor.sim_nodes")
 
 
+def test_error_names_unknown_texture():
+    expect_error('[sensor]\ntexture = "plaid"\n' + BASE, "sensor.texture")
+    assert parse_scene('[sensor]\ntexture = "punyo"\n' + BASE).sensor.texture == "punyo"
+
+
 def test_error_names_unknown_physics_key():
     expect_error("[physics]\nstiffness = 3\n" + BASE, "physics.stiffness")
 
@@ -249,6 +254,7 @@ def test_profile_sets_physics_and_camera_defaults():
     assert s.physics.rest_dome_height_m == PUNYO_BUBBLE.rest_dome_height_m
     assert s.physics.chamber_volume_m3 == 2e-4  # a key still overrides the profile
     assert s.sensor.camera_pose == PUNYO_BUBBLE.camera_pose
+    assert s.sensor.texture == "punyo" and parse_scene(BASE).sensor.texture == "dots"
     with pytest.raises(SceneError, match="profile: unknown sensor profile 'gel'"):
         parse_scene('profile = "gel"\n' + BASE)
     with pytest.raises(SceneError, match="profile: unknown sensor profile"):

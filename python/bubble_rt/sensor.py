@@ -50,6 +50,9 @@ class BubblePhysics:
             pressure gives ``dome_height_m``.
         camera: camera preset (``bubble_rt.camera.Camera.preset``).
         camera_pose: camera -> mesh transform (4 x 4 rows), None for the preset's default.
+        texture: the pattern on the membrane's inner surface as its camera sees it
+            (``bubble_rt.sim.texture.PATTERNS``), which with the camera's noise sets the flow
+            noise.
     """
 
     ambient_pa: float
@@ -64,6 +67,7 @@ class BubblePhysics:
     rest_dome_height_m: float
     camera: str = "d405"
     camera_pose: tuple[tuple[float, ...], ...] | None = None
+    texture: str = "dots"
 
     @property
     def rest_pressure_pa(self) -> float:
@@ -140,6 +144,9 @@ PUNYO_BUBBLE = BubblePhysics(
         (-0.4226182617, 0.0, 0.906307787, -0.054),
         (0.0, 0.0, 0.0, 1.0),
     ),
+    # Bright paint splashed on a dark membrane under green LEDs, matched on the shared untouched
+    # frames (docs/sim-noise.md, "Texture and image noise").
+    texture="punyo",
 )
 
 SIM = SensorProfile(

@@ -155,7 +155,10 @@ def trajectory_scene(
         frames=st.frames,
         seed=int(rng.integers(0, 2**31 - 1)),
         sensor=SensorSpec(
-            camera=bubble.camera, camera_pose=bubble.camera_pose, sim_nodes=st.sim_nodes
+            camera=bubble.camera,
+            camera_pose=bubble.camera_pose,
+            sim_nodes=st.sim_nodes,
+            texture=bubble.texture,
         ),
         rates=st.rates,
         physics=PhysicsSpec.of(bubble),

@@ -51,9 +51,10 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
         "scale_m": 0.01,
         "max_m": 0.045,
     },
-    # rgb_noise: Gaussian, sigma in 8-bit levels per channel, correlated across channels and
-    # between horizontal neighbours as on the D405.
-    "rgb_noise": {"sigma": 2.7, "channel_corr": 0.5, "h_corr": 0.24},
+    # rgb_noise: the colour pipeline's noise: Gaussian of sigma (8-bit levels) on each
+    # photosite of an RGGB mosaic, demosaiced, then an edge-preserving denoiser of
+    # denoise_levels (levels; 0: none) over denoise_px (pixels).
+    "rgb_noise": {"sigma": 4.0, "denoise_levels": 10.0, "denoise_px": 1.5},
     "exposure_drift": {"amplitude": 0.08, "period_s": 6.0},
     # Slow drift (docs/simulator.md "Drift"), read in drift time (scene time x
     # rates.time_scale). illumination_drift: LED warm-up, the gain falls by gain_loss (fraction)

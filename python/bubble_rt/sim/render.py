@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bubble_rt.camera import Camera
-from bubble_rt.sim.texture import DotTexture
+from bubble_rt.sim.texture import MembraneTexture
 
 
 @dataclass
@@ -33,7 +33,7 @@ class MembraneRenderer:
         triangles: T x 3 int mesh connectivity.
         material_xy: M x 2 (or M x 3) rest-state material coordinates (m), used as texture
             coordinates so the pattern moves with the material.
-        texture: the printed dot pattern (default DotTexture()).
+        texture: the membrane's pattern (default MembraneTexture(): the dots).
         shading: modulate the texture by |cos| of the view angle (a light at the camera).
     """
 
@@ -42,14 +42,14 @@ class MembraneRenderer:
         camera: Camera,
         triangles: NDArray[np.integer],
         material_xy: NDArray[np.float64],
-        texture: DotTexture | None = None,
+        texture: MembraneTexture | None = None,
         shading: bool = True,
     ) -> None:
         if camera.has_distortion:
             raise ValueError("the rasteriser renders pinhole cameras only; set distortion to zeros")
         self.camera = camera
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int32)
-        self.texture = texture or DotTexture()
+        self.texture = texture or MembraneTexture()
         self.texcoords = self.texture.texcoords(np.asarray(material_xy, dtype=np.float64))
         if len(self.texcoords) <= int(self.triangles.max(initial=-1)):
             raise ValueError("material_xy must have a row for every vertex the triangles use")

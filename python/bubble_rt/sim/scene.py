@@ -37,12 +37,15 @@ class SceneError(ValueError):
 @dataclass(frozen=True)
 class SensorSpec:
     """camera: camera preset name; camera_pose: optional 4 x 4 camera-to-mesh transform;
-    sim_nodes: node count of the physics mesh; texture_seed: the printed dot pattern."""
+    sim_nodes: node count of the physics mesh; texture: the membrane's pattern
+    (``bubble_rt.sim.texture.PATTERNS``; the profile's bubble's unless given); texture_seed:
+    its random draw."""
 
     camera: str = "d405"
     camera_pose: tuple[tuple[float, ...], ...] | None = None
     sim_nodes: int = 2000
     texture_seed: int = 0
+    texture: str = SIM_BUBBLE.texture
 
 
 @dataclass(frozen=True)
@@ -339,10 +342,16 @@ def scene_from_dict(data: dict[str, Any], default_name: str = "scene") -> Scene:
 
 def _parse_sensor(sd: dict, bubble: BubblePhysics) -> SensorSpec:
     """``[sensor]``: the camera preset and pose (the profile's unless given), the simulation
-    mesh's node count and the texture seed."""
+    mesh's node count, the texture (the profile's unless given) and its seed."""
     from bubble_rt.camera import Camera
+    from bubble_rt.sim.texture import PATTERNS
 
-    _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture_seed"), "sensor.")
+    _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture", "texture_seed"), "sensor.")
+    texture = sd.get("texture", bubble.texture)
+    if texture not in PATTERNS:
+        raise SceneError(
+            f"sensor.texture: unknown texture {texture!r}; known: {', '.join(PATTERNS)}"
+        )
     camera = sd.get("camera", bubble.camera)
     try:
         Camera.preset(camera)
@@ -366,6 +375,7 @@ def _parse_sensor(sd: dict, bubble: BubblePhysics) -> SensorSpec:
         camera_pose=pose,
         sim_nodes=_int(sd, "sim_nodes", "sensor.", 2000, minimum=50),
         texture_seed=_int(sd, "texture_seed", "sensor.", 0),
+        texture=texture,
     )
 
 

@@ -50,6 +50,11 @@ RANGE_EDGES_M: tuple[float, ...] = tuple(np.round(np.arange(0.050, 0.1101, 0.005
 #: texture-less one (the flow there follows the noise).
 TEXTURED_LEVELS = 20.0
 TEXTURELESS_LEVELS = 10.0
+#: Image gradient (8-bit levels per pixel, of the frames' mean grey image) under which a pixel
+#: is flat, and the band counted as an edge, for the image noise's two sides: a camera's
+#: pipeline (demosaicing, denoising) leaves more noise on edges than on flat areas.
+FLAT_GRADIENT = 2.0
+EDGE_GRADIENT: tuple[float, float] = (10.0, 40.0)
 #: Width (px) of the band around invalid pixels counted as a depth edge.
 EDGE_BAND_PX = 5
 #: Scales (m, a Gaussian's standard deviation on the membrane) over which the depth noise is
@@ -104,8 +109,12 @@ class SensorStats:
             nodes under TEXTURELESS_LEVELS (where the flow follows the noise).
         node_jump_rate: tracked nodes lifted by more than JUMP_M, per frame.
         node_u_rms_mm: RMS of the tracked node displacement over valid nodes (mm).
+        node_gradient: median over the textured nodes of the RMS image gradient in a 15 px
+            window (8-bit levels per pixel): what the flow holds on to.
         rgb_noise: RMS over the membrane of the colour levels' temporal std (8-bit levels).
         grey_noise: the same for the grey image the flow reads.
+        grey_noise_flat, grey_noise_edges: the same on flat pixels (gradient under
+            FLAT_GRADIENT) and on edges (gradient within EDGE_GRADIENT).
     """
 
     frames: int
@@ -137,8 +146,11 @@ class SensorStats:
     textureless_share: float = float("nan")
     node_jump_rate: float = float("nan")
     node_u_rms_mm: float = float("nan")
+    node_gradient: float = float("nan")
     rgb_noise: float = float("nan")
     grey_noise: float = float("nan")
+    grey_noise_flat: float = float("nan")
+    grey_noise_edges: float = float("nan")
 
     def noise_at(self, z_mm: float) -> float:
         """The binned temporal noise (mm) at range ``z_mm`` (NaN outside the bins)."""
@@ -354,13 +366,37 @@ def _jump_stats(
     }
 
 
+def _grey(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+    import cv2
+
+    return np.asarray(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), dtype=np.float32)
+
+
 def local_contrast(rgb: NDArray[np.uint8], window_px: int = 15) -> NDArray[np.float32]:
     """Standard deviation of the grey level over a ``window_px`` square around each pixel."""
     import cv2
 
-    g = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    g = _grey(rgb)
     mu = cv2.blur(g, (window_px, window_px))
     return np.sqrt(np.maximum(cv2.blur(g * g, (window_px, window_px)) - mu * mu, 0.0))
+
+
+def gradient(grey: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The image gradient (levels per pixel, H x W each along x and y): Sobel over 8."""
+    import cv2
+
+    return (
+        np.asarray(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), np.float32) / np.float32(8),
+        np.asarray(cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3), np.float32) / np.float32(8),
+    )
+
+
+def local_gradient(rgb: NDArray[np.uint8], window_px: int = 15) -> NDArray[np.float32]:
+    """RMS image gradient (levels per pixel) over a ``window_px`` square around each pixel."""
+    import cv2
+
+    gx, gy = gradient(_grey(rgb))
+    return np.sqrt(np.asarray(cv2.blur(gx * gx + gy * gy, (window_px, window_px))))
 
 
 def flow_stats(
@@ -394,6 +430,7 @@ def flow_stats(
     per_node = np.sqrt((F**2).sum(axis=2).mean(axis=0))
     px = np.clip(np.round(uv[vis]).astype(int), 0, [camera.width - 1, camera.height - 1])
     contrast = local_contrast(frames[0].rgb)[px[:, 1], px[:, 0]]  # type: ignore[arg-type]
+    grad = local_gradient(frames[0].rgb)[px[:, 1], px[:, 0]]  # type: ignore[arg-type]
     textured = contrast >= TEXTURED_LEVELS
     # Less each frame's mean flow over the textured nodes: what a rigid shift of the whole
     # membrane in the image (the arm moving the real sensor) does not explain.
@@ -413,22 +450,29 @@ def flow_stats(
         "textureless_share": float(np.mean(contrast < TEXTURELESS_LEVELS)),
         "node_jump_rate": jumps / k,
         "node_u_rms_mm": float(np.sqrt(np.mean(u**2)) * 1e3),
+        "node_gradient": float(np.median(grad[textured])) if textured.any() else float("nan"),
     }
 
 
 def rgb_stats(frames: Sequence[Frame], camera: Camera) -> dict[str, float]:
-    """rgb_noise and grey_noise: RMS over the membrane of the temporal std (8-bit levels)."""
-    import cv2
-
+    """rgb_noise and grey_noise: RMS over the membrane of the temporal std (8-bit levels);
+    grey_noise_flat and grey_noise_edges: the grey one on flat pixels and on edges."""
     region = membrane_region(camera) > 0
     imgs = [np.asarray(f.rgb) for f in frames if f.rgb is not None]
     if len(imgs) < 2:
         return {}
     rgb = np.stack([im[region].astype(np.float32) for im in imgs])
-    grey = np.stack(
-        [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)[region].astype(np.float32) for im in imgs]
-    )
-    return {"rgb_noise": _rms(rgb.std(axis=0)), "grey_noise": _rms(grey.std(axis=0))}
+    greys = np.stack([_grey(im) for im in imgs])
+    gx, gy = gradient(np.ascontiguousarray(greys.mean(axis=0)))
+    g = np.hypot(gx, gy)[region]
+    sd = greys[:, region].std(axis=0)
+    flat, edges = g < FLAT_GRADIENT, (g >= EDGE_GRADIENT[0]) & (g < EDGE_GRADIENT[1])
+    return {
+        "rgb_noise": _rms(rgb.std(axis=0)),
+        "grey_noise": _rms(sd),
+        "grey_noise_flat": _rms(sd[flat]) if flat.any() else float("nan"),
+        "grey_noise_edges": _rms(sd[edges]) if edges.any() else float("nan"),
+    }
 
 
 def measure(frames: Sequence[Frame], camera: Camera, flow: bool = True) -> SensorStats:
@@ -463,13 +507,16 @@ def sim_frames(
     seed: int = 0,
     sim_nodes: int = 800,
     physics: object | None = None,
+    texture: str = "dots",
 ) -> tuple[list[Frame], Camera]:
     """``n`` untouched simulated frames (the reference state, fresh noise each) and the camera.
 
     ``effects``: the camera effects and their parameters (default: the D405 effects with
     EFFECT_DEFAULTS); ``camera_pose``: 4 x 4 camera -> mesh (default: the scene's default,
     straight below the dome; pass :func:`bubble_rt.io.punyo.punyo_pose` for the Punyo's view);
-    ``physics``: a physics backend for the Simulator (default: the real one, cached).
+    ``physics``: a physics backend for the Simulator (default: the real one, cached);
+    ``texture``: the membrane's pattern (``bubble_rt.sim.texture.PATTERNS``; "punyo" for the
+    Punyo's).
     """
     from bubble_rt.sim.scene import (
         EFFECT_DEFAULTS,
@@ -494,7 +541,7 @@ def sim_frames(
         trajectory=TrajectorySpec(keyframes=(Keyframe(t=0.0, at=(0.0, 0.0), depth=-0.03),)),
         frames=1,
         seed=seed,
-        sensor=SensorSpec(camera_pose=pose, sim_nodes=sim_nodes),
+        sensor=SensorSpec(camera_pose=pose, sim_nodes=sim_nodes, texture=texture),
         effects=_parse_effects(eff),
     )
     sim = Simulator(scene, physics=physics)  # type: ignore[arg-type]
@@ -555,8 +602,13 @@ def table(real: SensorStats, sims: dict[str, SensorStats]) -> str:
     add("texture-less nodes (share)", lambda s: f"{s.textureless_share:.2f}")
     add("nodes lifted > 2 mm per frame", lambda s: f"{s.node_jump_rate:.2f}")
     add("node displacement RMS (mm)", lambda s: f"{s.node_u_rms_mm:.3f}")
+    add("image gradient at textured nodes, median (levels/px)", lambda s: f"{s.node_gradient:.1f}")
     add("RGB noise (levels)", lambda s: f"{s.rgb_noise:.2f}")
     add("grey noise (levels)", lambda s: f"{s.grey_noise:.2f}")
+    add(
+        "grey noise on flat areas / on edges (levels)",
+        lambda s: f"{s.grey_noise_flat:.2f} / {s.grey_noise_edges:.2f}",
+    )
     head = "| statistic | " + " | ".join(cols) + " |\n|---|" + "---|" * len(cols) + "\n"
     return head + "\n".join(f"| {n} | " + " | ".join(v) + " |" for n, v in rows)
 
@@ -582,8 +634,9 @@ def main() -> None:  # pragma: no cover - a report, run by hand (docs/sim-noise.
     frames, cam = real_frames(a.real, range(a.frames))
     real = measure(frames, cam, flow=not a.no_flow)
     sims = {}
-    for name, pose in (("sim, Punyo view", punyo_pose()), ("sim, default view", None)):
-        f, c = sim_frames(a.frames, effects=eff, camera_pose=pose, seed=a.seed)
+    views = (("sim, Punyo view", punyo_pose(), "punyo"), ("sim, default view", None, "dots"))
+    for name, pose, texture in views:
+        f, c = sim_frames(a.frames, effects=eff, camera_pose=pose, seed=a.seed, texture=texture)
         sims[name] = measure(f, c, flow=not a.no_flow)
     print(table(real, sims))
 

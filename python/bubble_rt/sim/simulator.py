@@ -335,10 +335,11 @@ class Simulator:
     def _renderer_for(self) -> Any:
         if self._renderer is None:
             from bubble_rt.sim.render import MembraneRenderer
-            from bubble_rt.sim.texture import DotTexture, TextureSettings
+            from bubble_rt.sim.texture import MembraneTexture, TextureSettings
 
             run = self.run
-            tex = DotTexture(TextureSettings(seed=self.scene.sensor.texture_seed))
+            sensor = self.scene.sensor
+            tex = MembraneTexture(TextureSettings.named(sensor.texture, sensor.texture_seed))
             self._renderer = MembraneRenderer(self.camera, run.triangles, run.rest_vertices, tex)
         return self._renderer
 
