@@ -173,12 +173,13 @@ def simulate_trajectory(
     """
     from dataclasses import replace
 
+    from bubble_rt.sim.effect_names import IMAGE_EFFECTS
     from bubble_rt.sim.simulator import Simulator
 
     scene = trajectory_scene(geometry, trajectory, n_frames, seed)
     if not render:
-        image_effects = {"depth_noise", "depth_dropouts", "rgb_noise", "rgb_blur", "exposure"}
-        kept = tuple(e for e in scene.effects if e[0] not in image_effects)
+        # "oracle" renders no image, so no image effect may go with it (Scene's own rule).
+        kept = tuple(e for e in scene.effects if e[0] not in IMAGE_EFFECTS)
         scene = replace(scene, effects=kept + (("oracle", ()),))
     sim = Simulator(scene, physics=physics)
     refs = sim.reference_frames(n_reference)
