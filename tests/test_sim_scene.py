@@ -98,6 +98,7 @@ def test_error_names_too_few_sim_nodes():
 
 def test_error_names_unknown_texture():
     expect_error('[sensor]\ntexture = "plaid"\n' + BASE, "sensor.texture")
+    expect_error("[sensor]\ntexture = [1]\n" + BASE, "sensor.texture")
     assert parse_scene('[sensor]\ntexture = "punyo"\n' + BASE).sensor.texture == "punyo"
 
 

@@ -348,7 +348,7 @@ def _parse_sensor(sd: dict, bubble: BubblePhysics) -> SensorSpec:
 
     _no_unknown(sd, ("camera", "camera_pose", "sim_nodes", "texture", "texture_seed"), "sensor.")
     texture = sd.get("texture", bubble.texture)
-    if texture not in PATTERNS:
+    if not isinstance(texture, str) or texture not in PATTERNS:
         raise SceneError(
             f"sensor.texture: unknown texture {texture!r}; known: {', '.join(PATTERNS)}"
         )
