@@ -326,3 +326,15 @@ def test_rgb_noise_on_a_grey_image():
     out = effects.rgb_noise(grey, effects_defaults("rgb_noise"), np.random.default_rng(0), 0.0)
     assert out.shape == grey.shape and out.dtype == np.uint8
     assert 0.5 < (out.astype(float) - 128).std() < 4.0
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 2, 3), (3, 5, 3), (61, 81, 3)])
+def test_rgb_noise_keeps_odd_and_tiny_images(shape):
+    # The mosaic has a 2 x 2 period: an odd or one-pixel image must come back whole, black
+    # and white ones saturated, not wrapped.
+    p = effects_defaults("rgb_noise")
+    for level in (0, 255):
+        img = np.full(shape, level, np.uint8)
+        out = effects.rgb_noise(img, p, np.random.default_rng(0), 0.0)
+        assert out.shape == img.shape and out.dtype == np.uint8
+        assert np.abs(out.astype(int) - level).mean() < p["sigma"]

@@ -242,12 +242,12 @@ def rgb_noise(
     none) smooths it. What comes out is what the D405 shows and white noise does not: noise
     correlated between neighbours (0.2 both ways) and channels (0.4-0.6), and about 1.7x
     stronger on edges than on flat areas, which is where the optical flow reads it
-    (docs/sim-noise.md, "Texture and image noise"). A grey image gets the noise and the
-    denoiser only.
+    (docs/sim-noise.md, "Texture and image noise"). A grey image, or one narrower than 3
+    pixels, gets the noise and the denoiser only.
     """
     import cv2
 
-    if rgb.ndim != 3:
+    if rgb.ndim != 3 or min(rgb.shape[:2]) < 3:  # OpenCV demosaics 3 x 3 and larger only
         raw = rgb.astype(np.float32) + np.float32(p["sigma"]) * fast_normal(rng, rgb.shape)
         return _denoise(_adc(raw), p)
     mosaic = np.empty(rgb.shape[:2], np.float32)
