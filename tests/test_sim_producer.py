@@ -212,3 +212,25 @@ def test_a_pass_cut_short_by_a_stop_is_never_stored_and_a_partial_one_is_ignored
     store_pass(path, part)  # a partial pass written by an older version
     assert path.exists() and load_pass(path, 6) is None
     assert SimCamera(str(scene), lossless=True).cached_pass is None
+
+
+@pytest.mark.parametrize("profile", ["sim", "punyo"])
+def test_sim_camera_reads_as_its_scenes_sensor_profile(tmp_path, monkeypatch, profile):
+    # A simulated Punyo is Punyo hardware to the estimator: with the "sim" profile's ambient
+    # pressure the daemon read 0.65 of its true force (serve --camera sim:punyo).
+    from bubble_rt.config import DaemonConfig
+    from bubble_rt.daemon.sim_camera import SimCamera
+    from bubble_rt.daemon.startup import resolve_profile
+    from bubble_rt.sensor import PROFILES
+    from sim_recordings import TINY_SCENE
+
+    monkeypatch.setenv("BUBBLE_RT_CACHE", str(tmp_path / "cache"))
+    scene = tmp_path / f"{profile}.toml"
+    scene.write_text(f'profile = "{profile}"\n' + TINY_SCENE)
+    cam = SimCamera(str(scene))
+    try:
+        est = resolve_profile(DaemonConfig(), cam.layout).estimator
+        assert cam.layout == profile and est.profile == profile
+        assert est.ambient_pa == PROFILES[profile].ambient_pa
+    finally:
+        cam.stop()

@@ -50,6 +50,10 @@ class SimCamera(IterableCamera):
         except Exception as exc:
             raise SourceError(f"cannot load simulator scene {scene!r}: {exc}") from exc
         self._n_frames = int(sim.scene.frames)
+        # A simulated sensor is its scene's profile's bubble: the layout names that profile
+        # ("sim", "punyo"), so that profile = "auto" reads a simulated Punyo as a Punyo (with
+        # the "sim" profile's ambient it read 0.65 of the true force).
+        self.layout = str(getattr(sim.scene, "profile", "sim"))
         self.producer = sp.SimProducer(
             scene, sim, repeat=loop and not prerender, keep_pass=prerender, simulator=path
         )

@@ -261,6 +261,7 @@ class CameraSource(ThreadedSource):
     camera: Camera
     #: The data's layout ("sim", "punyo", "rosbag", "realsense", ...): with the configuration's
     #: ``profile = "auto"`` it picks the sensor profile (bubble_rt.sensor.profile_for_layout).
+    #: A simulated camera gives its scene's profile ("sim" or "punyo").
     layout: str = "sim"
     #: A replay of this project's recording (``recorded``): the live run's configuration TOML
     #: and fitted mesh, which the daemon then uses; empty / None for every other source.
