@@ -24,6 +24,7 @@ from bubble_rt.io.mcap import (
 )
 from bubble_rt.io.mcap_scan import McapFileError, ReadReport
 from bubble_rt.io.mcap_writer import Recorder, write_recording
+from bubble_rt.sensor import profile_for_layout
 from daemon_fakes import (
     CAM,
     FakeProcessor,
@@ -57,6 +58,29 @@ def test_round_trip_frames_camera_and_reference(tmp_path):
         assert a.pressure_pa == b.pressure_pa and a.t == pytest.approx(b.t)
     r = rec.reference_frames(10)
     assert len(r) == 2 and r[0].rgb[0, 0, 0] == 100 and [f.index for f in r] == [-2, -1]
+
+
+def test_a_recording_names_the_sensor_profile_it_was_recorded_with(tmp_path):
+    # `estimate` and `eval --recording` resolve profile = "auto" by the recording's layout: a
+    # recorded Punyo (the daemon wrote [estimator] profile = "punyo") is a Punyo offline too,
+    # not the default's (with the sim profile a simulated Punyo's reference read 2.9 N).
+    cam = Camera.d405(width=32, height=24, cx=16, cy=12)
+    p = tmp_path / "r.mcap"
+    write_recording(p, [make_frame(i) for i in range(2)], cam)
+    rec = McapRecording(p)
+    assert rec.layout == "mcap"  # no settings recorded
+    for toml, layout in (
+        ('[estimator]\nprofile = "punyo"\nambient_pa = 86300.0\n', "punyo"),
+        ('[estimator]\nprofile = "sim"\n', "sim"),
+        ('[estimator]\nprofile = "auto"\n', "mcap"),
+        ('[estimator]\nprofile = "gel"\n', "mcap"),
+        ("[estimator]\nprofile = [1]\n", "mcap"),
+        ("estimator = 3\n", "mcap"),
+        ("[estimator\nprofile = 'punyo'", "mcap"),  # does not parse
+    ):
+        rec.settings_toml = toml
+        assert rec.layout == layout, toml
+        assert profile_for_layout(rec.layout).name == ("punyo" if layout == "punyo" else "sim")
 
 
 def test_images_use_foxglove_image_schemas(tmp_path):

@@ -246,7 +246,7 @@ def _open(args: argparse.Namespace) -> tuple[Any, list[int], list[int], str]:
         todo = parse_frames(args.frames, n) if args.frames else list(range(n))
     except ValueError as exc:
         raise _Stop(2, str(exc)) from None
-    # (this project's MCAP recordings state no layout: the sensor profile is the default's)
+    # (this project's MCAP recordings give the profile their daemon ran with, else "mcap")
     return rec, ref_idx, todo, getattr(rec, "layout", "mcap")
 
 

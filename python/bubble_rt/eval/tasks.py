@@ -386,7 +386,8 @@ def evaluate_recording(
     touched = f_gt > force_threshold
     from bubble_rt.sensor import profile_for_layout
 
-    # The recording's sensor profile (a Punyo folder or bag: the Punyo's), unless overridden.
+    # The recording's sensor profile (a Punyo folder or bag: the Punyo's; an MCAP recording:
+    # the one its daemon ran with), unless overridden.
     ambient = {"ambient_pa": profile_for_layout(getattr(rec, "layout", "")).ambient_pa}
     config = estimator_config({**ambient, **(overrides or {})})
     out: dict[str, Any] = {

@@ -286,6 +286,23 @@ class McapRecording:
             warnings.warn(RecordingWarning(text), stacklevel=2)
 
     @property
+    def layout(self) -> str:
+        """What ``profile = "auto"`` reads (``bubble_rt.sensor.profile_for_layout``): the sensor
+        profile the recording's daemon ran with ("sim", "punyo"; its settings name it), so a
+        recorded Punyo is estimated as a Punyo offline too; "mcap" when the settings name none
+        (or do not parse)."""
+        import tomllib
+
+        from bubble_rt.sensor import PROFILES
+
+        try:
+            est = tomllib.loads(self.settings_toml).get("estimator", {})
+        except tomllib.TOMLDecodeError:
+            return "mcap"
+        name = est.get("profile") if isinstance(est, dict) else None
+        return name if isinstance(name, str) and name in PROFILES else "mcap"
+
+    @property
     def has_reference(self) -> bool:
         return bool(self._reference)
 
