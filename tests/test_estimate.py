@@ -170,3 +170,37 @@ def test_estimate_skips_a_truncated_file_of_a_real_punyo_recording(tmp_path):
     assert "pc_7.npy: unreadable, damaged or truncated" in skip["reason"]
     for f in res["frames"]:  # untouched frames read about zero, as without the damage
         assert np.linalg.norm(f["net_force"]) < 0.5
+
+
+def test_estimate_takes_an_mcap_recordings_own_reference_by_default(tmp_path):
+    """A recording of this project holds the reference its daemon captured; a stream that
+    starts in contact (the `punyo` scene does) has no untouched frames 0-4 to take."""
+    from dataclasses import replace
+
+    from sim_recordings import write_mcap
+
+    cam = Camera.d405()
+    depth = dome_depth(cam)
+    img = texture(cam.height, cam.width)
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    r2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
+    dent = np.where(depth > 0, depth - 3e-3 * np.exp(-r2 / (2 * 25.0**2)), 0).astype(np.float32)
+    untouched = Frame(img, depth, 1e5, wrench=np.zeros(6))
+    pressed = Frame(img, dent, 1e5 + 300.0, wrench=np.zeros(6))
+    rec = write_mcap(
+        tmp_path / "r.mcap",
+        [replace(pressed, index=i) for i in range(3)],
+        [replace(untouched, index=i - 3) for i in range(3)],
+        cam,
+    )
+    out = tmp_path / "o.json"
+    base = ["estimate", str(rec), "--mesh", "coarse", "--no-progress", "--json", str(out)]
+    assert main(base) == 0
+    res = json.loads(out.read_text())
+    assert res["reference_frames"] == [-3, -2, -1]
+    assert all(np.linalg.norm(f["net_force"]) > 0.5 for f in res["frames"])
+    # Frames named explicitly still win: the pressed frames as the reference read no force.
+    assert main([*base, "--reference-frames", "0-1"]) == 0
+    res = json.loads(out.read_text())
+    assert res["reference_frames"] == [0, 1]
+    assert all(np.linalg.norm(f["net_force"]) < 0.1 for f in res["frames"])

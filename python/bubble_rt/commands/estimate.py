@@ -3,7 +3,9 @@
     bubble-rt estimate RECORDING --reference-frames 0-4 --mesh medium --json OUT
         [--flow dis_medium] [--flow-scale 1.0] [--frames 5-19] [--save-mesh mesh.vtk]
 
-The reference is captured from the given untouched frames; with a preset name for --mesh
+The reference is captured from the given untouched frames (default: the reference frames a
+recording of this project holds, which its daemon captured, else frames 0-4; the JSON's
+"reference_frames" then lists their negative indices); with a preset name for --mesh
 ("coarse" | "medium" | "fine") the preset is fitted to that reference's depth surface (a mesh
 file is used as given: it must already be in the recording camera's mesh frame). Output JSON:
 {"recording", "camera", "mesh", "flow", "reference_frames", "frames": [{index, t, net_force
@@ -83,7 +85,10 @@ FLOW_CHOICES = IMAGE_FLOW_METHODS
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", help="recording (Punyo .npy layout, PNG folder or ROS 2 bag)")
     parser.add_argument(
-        "--reference-frames", default="0-4", help="untouched frames for the reference (0-4)"
+        "--reference-frames",
+        default=None,
+        help="untouched frames for the reference (default: the reference an MCAP recording of "
+        "this project holds, else 0-4)",
     )
     parser.add_argument(
         "--config",
@@ -150,7 +155,11 @@ def _run(args: argparse.Namespace) -> None:
     for note in (getattr(rec, "topics_note", ""), getattr(rec, "lost", "")):
         if note:  # topics paired across namespaces; what a cut bag lost
             print(f"bubble-rt estimate: {note}", file=sys.stderr)
-    ref_frames = [f for _, f in _pick(rec, ref_idx, tally)]
+    if ref_idx:
+        ref_frames = [f for _, f in _pick(rec, ref_idx, tally)]
+    else:  # the reference the recording's daemon captured, before its stream
+        ref_frames = rec.reference_frames(sys.maxsize)
+        ref_idx = [f.index for f in ref_frames]
     if not ref_frames:
         raise _Stop(
             EXIT_NO_FRAME,
@@ -231,7 +240,8 @@ def _configuration(args: argparse.Namespace) -> Any:
 
 
 def _open(args: argparse.Namespace) -> tuple[Any, list[int], list[int], str]:
-    """The recording, the reference and estimated frame positions, and its layout."""
+    """The recording, the reference frame positions (empty: the reference it holds), the
+    positions to estimate, and its layout."""
     from bubble_rt.io.recordings import open_recording
 
     try:
@@ -242,7 +252,10 @@ def _open(args: argparse.Namespace) -> tuple[Any, list[int], list[int], str]:
     if n == 0:  # e.g. an MCAP file cut after its reference frames
         raise _Stop(EXIT_NO_FRAME, f"{args.recording}: no frame in the recording")
     try:
-        ref_idx = parse_frames(args.reference_frames, n)
+        # A recording of this project holds its daemon's reference: the frames it was
+        # captured from, untouched even when the stream starts in contact.
+        recorded = args.reference_frames is None and bool(getattr(rec, "has_reference", False))
+        ref_idx = [] if recorded else parse_frames(args.reference_frames or "0-4", n)
         todo = parse_frames(args.frames, n) if args.frames else list(range(n))
     except ValueError as exc:
         raise _Stop(2, str(exc)) from None
