@@ -1,11 +1,11 @@
 """The real press's membrane away from the load, against the simulated Punyo pressing alike.
 
 Tracks the hold frames (26-30) of ``../shared/data/punyo-demo-0-press`` (reference 0-4) and
-two simulated presses of the Punyo bubble (``profile = "punyo"``: a 10.44 mm sphere at the real
-dent's centre, the radius ``bubble_rt.eval.press_physics`` matches to the real dent; friction
-0.5, gas compression and the D405 effects; along the surface normal, and tilted ``--tilt``
-degrees towards +x as the real press leans), all on the fitted medium mesh with the Punyo
-profile. For each it prints, by distance from the load's centre (the deepest node):
+two simulated presses of the Punyo bubble (``profile = "punyo"``: the built-in ``punyo``
+scene's 10.4 mm sphere, which ``bubble_rt.eval.press_physics`` matches to the real dent, at the
+real dent's centre; friction 0.5, gas compression and the D405 effects; along the surface
+normal, and tilted ``--tilt`` degrees towards +x as the real press leans), all on the fitted
+medium mesh with the Punyo profile. For each it prints, by distance from the load's centre (the deepest node):
 
 - the tracked normal displacement ``U . n`` (mm, outward positive): the dent and, beyond it,
   the membrane's bulge under the pressure rise;
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -28,19 +29,11 @@ import numpy as np
 from bubble_rt.estimation.estimator import EstimatorConfig, ForceEstimator
 from bubble_rt.estimation.pipeline import Pipeline
 from bubble_rt.sensor import PUNYO
+from mesh_convergence import REAL  # bench/ is on the path of a script run from it
 
-REAL = next(
-    (
-        p / "shared" / "data" / "punyo-demo-0-press"
-        for p in Path(__file__).resolve().parents[1:4]
-        if (p / "shared" / "data" / "punyo-demo-0-press").exists()
-    ),
-    Path("../shared/data/punyo-demo-0-press"),
-)
 BINS_MM = ((0, 5), (5, 10), (10, 15), (15, 20), (20, 30), (30, 40), (40, 60))
-#: The sphere press_physics matches to the real dent (m), and the press depth past first touch
-#: that gives about the real hold's force when tilted (m).
-SPHERE_M = 0.01044
+#: The press depth past first touch (m) that gives about the real hold's force when tilted; the
+#: sphere is the built-in `punyo` scene's, the one press_physics matches to the real dent.
 DEPTH_M = 5.05e-3
 
 
@@ -71,9 +64,10 @@ def profile(pipe: Pipeline, frames: list[Any]) -> tuple[np.ndarray, np.ndarray]:
 
 def simulated_press(tilt_deg: float, at: tuple[float, float]) -> tuple[list[Any], list[Any], Any]:
     """Reference frames, the hold's last 3 frames and the camera of a simulated Punyo press."""
-    from bubble_rt.sim.scene import scene_from_dict
+    from bubble_rt.sim.scene import load_scene, scene_from_dict
     from bubble_rt.sim.simulator import Simulator
 
+    sphere = asdict(load_scene("punyo").indenter.shapes[0])
     t = np.radians(tilt_deg)
     approach = [float(np.sin(t)), 0.0, -float(np.cos(t))]
 
@@ -86,7 +80,7 @@ def simulated_press(tilt_deg: float, at: tuple[float, float]) -> tuple[list[Any]
             "profile": "punyo",
             "frames": 12,
             "seed": 5,
-            "indenter": {"shapes": [{"type": "sphere", "radius": SPHERE_M}]},
+            "indenter": {"shapes": [{"type": "sphere", "radius": sphere["radius"]}]},
             "trajectory": {"keyframes": [key(0.0, -1e-3), key(0.25, DEPTH_M), key(0.4, DEPTH_M)]},
             "effects": {
                 "gas_compression": True,

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bubble_rt.io.punyo import punyo_pose
+from bubble_rt.sensor import PUNYO_BUBBLE
 from bubble_rt.sim import sensor_stats as ss
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "punyo-demo-0"
@@ -30,7 +31,7 @@ def real() -> ss.SensorStats:
 
 @pytest.fixture(scope="module")
 def sim() -> ss.SensorStats:
-    frames, cam = ss.sim_frames(FRAMES, camera_pose=punyo_pose(), texture="punyo")
+    frames, cam = ss.sim_frames(FRAMES, camera_pose=punyo_pose(), texture=PUNYO_BUBBLE.texture)
     return ss.measure(frames, cam)
 
 

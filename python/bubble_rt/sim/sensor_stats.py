@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from bubble_rt.camera import Camera
 from bubble_rt.frames import Frame
 from bubble_rt.mesh import Mesh
+from bubble_rt.sensor import PUNYO_BUBBLE, SIM_BUBBLE
 
 #: A depth deviation from the surface larger than this (m) is a jump, not noise.
 JUMP_M = 0.002
@@ -507,7 +508,7 @@ def sim_frames(
     seed: int = 0,
     sim_nodes: int = 800,
     physics: object | None = None,
-    texture: str = "dots",
+    texture: str = SIM_BUBBLE.texture,
 ) -> tuple[list[Frame], Camera]:
     """``n`` untouched simulated frames (the reference state, fresh noise each) and the camera.
 
@@ -634,7 +635,10 @@ def main() -> None:  # pragma: no cover - a report, run by hand (docs/sim-noise.
     frames, cam = real_frames(a.real, range(a.frames))
     real = measure(frames, cam, flow=not a.no_flow)
     sims = {}
-    views = (("sim, Punyo view", punyo_pose(), "punyo"), ("sim, default view", None, "dots"))
+    views = (
+        ("sim, Punyo view", punyo_pose(), PUNYO_BUBBLE.texture),
+        ("sim, default view", None, SIM_BUBBLE.texture),
+    )
     for name, pose, texture in views:
         f, c = sim_frames(a.frames, effects=eff, camera_pose=pose, seed=a.seed, texture=texture)
         sims[name] = measure(f, c, flow=not a.no_flow)
