@@ -370,6 +370,45 @@ def test_recording_eval_on_untouched_real_frames():
     assert "| fem |" in recording_table(res)
 
 
+def test_recording_eval_takes_an_mcap_recordings_own_reference_and_its_wrench_bias(tmp_path):
+    """A recording of this project holds the untouched reference its daemon captured, with
+    their wrenches: that is the reference and the wrench bias, and every stream frame is
+    scored, also when the stream starts in contact (as calibrate and estimate read it)."""
+    from dataclasses import replace
+
+    from bubble_rt.camera import Camera
+    from bubble_rt.eval import evaluate_recording, recording_table
+    from bubble_rt.frames import Frame
+    from sim_recordings import write_mcap
+    from synth_rgbd import dome_depth, texture
+
+    cam = Camera.d405()
+    depth = dome_depth(cam)
+    img = texture(cam.height, cam.width)
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    r2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
+    dent = np.where(depth > 0, depth - 3e-3 * np.exp(-r2 / (2 * 25.0**2)), 0).astype(np.float32)
+    bias = np.array([0.4, -0.3, 0.2, 0.0, 0.0, 0.0])
+    press = np.array([0.0, 0.0, 2.0, 0.0, 0.0, 0.0])
+    untouched = Frame(img, depth, 1e5, wrench=bias)
+    pressed = Frame(img, dent, 1e5 + 300.0, wrench=bias + press)
+    rec = write_mcap(
+        tmp_path / "r.mcap",
+        [replace(pressed, index=i) for i in range(3)],
+        [replace(untouched, index=i - 3) for i in range(3)],
+        cam,
+    )
+    res = evaluate_recording(rec, estimators=("fem",), mesh="coarse", n_reference=5)
+    assert (res["reference"], res["reference_frames"], res["frames"]) == ("recorded", 3, 3)
+    # every frame pressed 2 N over the reference's bias: all touched (the first frames as the
+    # reference would have read 0 N and scored one frame)
+    assert res["touched_frames"] == 3
+    st = res["estimators"]["fem"]
+    assert st["recall"] == 1.0
+    assert st["mean_force_n"] > 0.5
+    assert "the reference is the 3 frames the recording holds" in recording_table(res)
+
+
 def test_eval_seed_changes_the_simulated_trajectories():
     """`eval --seed N` draws other trajectories: the scene a seed gives differs from the default."""
     import argparse

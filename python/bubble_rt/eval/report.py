@@ -290,7 +290,11 @@ def recording_table(res: dict[str, Any]) -> str:
     lines = [
         f"recording {res['recording']}: {res['frames']} frames, {res['touched_frames']} touched "
         f"(wrench force minus bias above {res['force_threshold_n']} N; "
-        f"the first {res['reference_frames']} frames are the reference and are not scored)",
+        + (
+            f"the reference is the {res['reference_frames']} frames the recording holds)"
+            if res.get("reference") == "recorded"
+            else f"the first {res['reference_frames']} frames are the reference and are not scored)"
+        ),
         "",
         "| estimator | " + " | ".join(c[0] for c in cols) + " |",
         "|" + "---|" * (len(cols) + 1),

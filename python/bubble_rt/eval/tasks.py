@@ -361,10 +361,13 @@ def evaluate_recording(
     """Net-force magnitude error and contact detection on a real recording with a wrench.
 
     The wrench is in the arm's frame, so only magnitudes are compared:
-    ``| |f_net| - |w_f - bias| |`` with ``bias`` the mean wrench force over the first
-    ``n_reference`` frames (which are also the untouched reference and are not scored). A frame
-    counts as touched when ``|w_f - bias| > force_threshold`` (N); the estimate detects contact
-    when it marks any contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
+    ``| |f_net| - |w_f - bias| |`` with ``bias`` the mean wrench force over the reference
+    frames. The reference is the one the recording holds (this project's MCAP recordings: up to
+    ``n_reference`` of the untouched frames its daemon captured before its stream, as
+    ``calibrate`` and ``estimate`` take it; every stream frame is then scored), else its first
+    ``n_reference`` frames, which are not scored. A frame counts as touched when
+    ``|w_f - bias| > force_threshold`` (N); the estimate detects contact when it marks any
+    contact node. Reports mean/median magnitude error, accuracy, precision, recall and the
     false-contact rate on untouched frames, per estimator.
     """
     from bubble_rt.io.recordings import open_recording
@@ -373,16 +376,20 @@ def evaluate_recording(
     frames = list(rec)
     if max_frames:
         frames = frames[:max_frames]
-    if len(frames) <= n_reference:
-        n_reference = max(1, len(frames) // 2)
-    ref_frames = frames[:n_reference]
-    wrenches = [f.wrench for f in frames]
-    if any(w is None for w in wrenches):
+    recorded = bool(getattr(rec, "has_reference", False))
+    if recorded:
+        ref_frames = list(rec.reference_frames(max(1, n_reference)))
+        scored = frames
+    else:
+        if len(frames) <= n_reference:
+            n_reference = max(1, len(frames) // 2)
+        ref_frames = frames[:n_reference]
+        scored = frames[n_reference:] if len(frames) > n_reference else frames
+    if any(f.wrench is None for f in [*ref_frames, *scored]):
         raise ValueError(f"{path}: recording has frames without a wrench")
-    W = np.asarray(wrenches, dtype=float)[:, :3]
-    bias = W[:n_reference].mean(axis=0)
-    scored = frames[n_reference:] if len(frames) > n_reference else frames
-    f_gt = np.linalg.norm(W - bias, axis=1)[len(frames) - len(scored) :]
+    bias = np.asarray([f.wrench for f in ref_frames], dtype=float)[:, :3].mean(axis=0)
+    W = np.asarray([f.wrench for f in scored], dtype=float)[:, :3]
+    f_gt = np.linalg.norm(W - bias, axis=1)
     touched = f_gt > force_threshold
     from bubble_rt.sensor import profile_for_layout
 
@@ -393,7 +400,8 @@ def evaluate_recording(
     out: dict[str, Any] = {
         "recording": str(path),
         "frames": len(scored),
-        "reference_frames": n_reference,
+        "reference_frames": len(ref_frames),
+        "reference": "recorded" if recorded else "first frames",
         "force_threshold_n": force_threshold,
         "ambient_pa": config.ambient_pa,
         "touched_frames": int(touched.sum()),
