@@ -566,3 +566,22 @@ def test_wrench_stats_over_frames_of_one_newton_or_more():
     assert s["average"]["fem"]["torque_rel_err"] == pytest.approx(0.3)
     assert "two contacts found" in markdown_table(s)
     assert "patch area / truth" in markdown_table(s)
+
+
+def test_eval_recording_reports_an_unreadable_recording_instead_of_a_traceback(tmp_path, capsys):
+    """A missing recording and one without a wrench are refused with exit code 2 and a
+    message that says what is wrong (they raised a traceback)."""
+    from bubble_rt.camera import Camera
+    from bubble_rt.cli import main
+    from bubble_rt.frames import Frame
+    from bubble_rt.io.recordings import write_png_recording
+    from synth_rgbd import dome_depth, texture
+
+    missing = tmp_path / "missing"
+    assert main(["eval", "--recording", str(missing), "--no-progress"]) == 2
+    assert f"bubble-rt eval: recording folder not found: {missing}" in capsys.readouterr().err
+    cam = Camera.d405()
+    frame = Frame(texture(cam.height, cam.width), dome_depth(cam), 1e5)
+    folder = write_png_recording(tmp_path / "nowrench", [frame] * 3, cam)
+    assert main(["eval", "--recording", str(folder), "--mesh", "coarse", "--no-progress"]) == 2
+    assert "frames without a wrench" in capsys.readouterr().err

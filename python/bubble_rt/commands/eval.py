@@ -65,7 +65,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     estimators = tuple(e.strip() for e in args.estimators.split(",") if e.strip())
     if args.recording:
-        _run_recording(args, ev, overrides, estimators)
+        try:
+            _run_recording(args, ev, overrides, estimators)
+        except (FileNotFoundError, ValueError) as exc:  # FrameError, McapFileError, ...
+            # a path, a layout or frames it cannot read; frames without a wrench
+            print(f"bubble-rt eval: {exc}", file=sys.stderr)
+            return 2
     else:
         _run_simulated(args, ev, overrides, estimators)
     return 0

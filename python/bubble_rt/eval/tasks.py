@@ -385,6 +385,8 @@ def evaluate_recording(
             n_reference = max(1, len(frames) // 2)
         ref_frames = frames[:n_reference]
         scored = frames[n_reference:] if len(frames) > n_reference else frames
+    if not ref_frames or not scored:
+        raise ValueError(f"{path}: no frame to evaluate (a reference and a frame to score)")
     if any(f.wrench is None for f in [*ref_frames, *scored]):
         raise ValueError(f"{path}: recording has frames without a wrench")
     bias = np.asarray([f.wrench for f in ref_frames], dtype=float)[:, :3].mean(axis=0)
