@@ -372,7 +372,8 @@ def evaluate_recording(
     """
     from bubble_rt.io.recordings import open_recording
 
-    rec = open_recording(path, **(bag_options or {}))  # bag_options: ROS 2 bags only
+    # bag_options: ROS 2 bags only; an MCAP recording also holds its reference frames
+    rec: Any = open_recording(path, **(bag_options or {}))
     frames = list(rec)
     if max_frames:
         frames = frames[:max_frames]
