@@ -108,8 +108,9 @@ class SensorStats:
             local contrast is at least TEXTURED_LEVELS, flow_textured_detrended_px the same
             less each frame's mean flow over those nodes (a rigid shift); textureless_share: share of visible
             nodes under TEXTURELESS_LEVELS (where the flow follows the noise).
-        node_jump_rate: tracked nodes lifted by more than JUMP_M, per frame.
-        node_u_rms_mm: RMS of the tracked node displacement over valid nodes (mm).
+        node_jump_rate: tracked nodes lifted by more than JUMP_M from their median lift over
+            the frames, per frame.
+        node_u_rms_mm: RMS of that lift over valid nodes (mm).
         node_gradient: median over the textured nodes of the RMS image gradient in a 15 px
             window (8-bit levels per pixel): what the flow holds on to.
         rgb_noise: RMS over the membrane of the colour levels' temporal std (8-bit levels).
@@ -408,8 +409,8 @@ def flow_stats(
     Returns flow_rms_px, flow_median_px (per-node RMS over frames, then RMS and median over
     visible nodes), flow_textured_px (RMS over nodes whose local contrast is at least
     TEXTURED_LEVELS), textureless_share (visible nodes under TEXTURELESS_LEVELS),
-    node_jump_rate (valid nodes lifted by more than ``jump_m`` from their first-frame lift,
-    per frame) and node_u_rms_mm (the same lift, valid nodes).
+    node_jump_rate (valid nodes lifted by more than ``jump_m`` from their median lift over
+    the frames, per frame) and node_u_rms_mm (the same lift, valid nodes).
     """
     from bubble_rt.estimation.deformation import FlowSettings, Reference, make_tracker
 
@@ -417,16 +418,18 @@ def flow_stats(
     tracker = make_tracker(mesh, camera, Reference.capture(frames[0]), FlowSettings())
     vis = np.asarray(getattr(tracker, "visible", np.ones(mesh.n_nodes, bool)))
     uv = np.asarray(getattr(tracker, "uv_ref", np.zeros((mesh.n_nodes, 2))))
-    d0 = tracker.track(frames[0])
-    flows, us = [], []
-    jumps = 0
-    for f in frames[1:]:
-        d = tracker.track(f)
-        flows.append(np.zeros((mesh.n_nodes, 2)) if d.flow is None else np.asarray(d.flow))
-        # Against the first frame's own lift: the mesh is the nominal dome, not fitted.
-        u = np.linalg.norm(d.U - d0.U, axis=1)[d.valid]
-        us.append(u)
-        jumps += int((u > jump_m).sum())
+    tracked = [tracker.track(f) for f in frames]
+    flows = [
+        np.zeros((mesh.n_nodes, 2)) if d.flow is None else np.asarray(d.flow) for d in tracked[1:]
+    ]
+    # Each node's lift against its median over the frames, not against the first frame's: a
+    # jump in the first frame would count again in every later frame (one node made 18 of a
+    # seed's 30 "lifts" that way).
+    U = np.stack([d.U for d in tracked])
+    valid = np.stack([d.valid for d in tracked])
+    dev = np.linalg.norm(U - np.median(U, axis=0), axis=2)
+    u = dev[valid] if valid.any() else np.zeros(1)
+    jumps = int((u > jump_m).sum())
     F = np.stack(flows)[:, vis]
     per_node = np.sqrt((F**2).sum(axis=2).mean(axis=0))
     px = np.clip(np.round(uv[vis]).astype(int), 0, [camera.width - 1, camera.height - 1])
@@ -437,8 +440,7 @@ def flow_stats(
     # membrane in the image (the arm moving the real sensor) does not explain.
     shift = F[:, textured].mean(axis=1, keepdims=True) if textured.any() else 0.0
     detrended = np.sqrt(((F - shift) ** 2).sum(axis=2).mean(axis=0))
-    u = np.concatenate(us) if us else np.zeros(1)
-    k = max(len(frames) - 1, 1)
+    k = max(len(frames), 1)
     return {
         "flow_rms_px": float(np.sqrt(np.mean(per_node**2))),
         "flow_median_px": float(np.median(per_node)),
