@@ -503,6 +503,28 @@ def real_frames(path: str, indices: Sequence[int] | None = None) -> tuple[list[F
     return [rec[i] for i in idx], rec.camera
 
 
+#: A real frame is taken with the arm still when the arm's joints moved less than this (rad)
+#: from the frame before and to the frame after (at rest the readings step by 4-6e-5 rad; a
+#: moving arm by 1e-3 to 1e-1).
+ARM_STILL_RAD = 1e-4
+
+
+def arm_still(path: str) -> list[int]:
+    """The frames of a Punyo recording (its data.json joint angles) taken with the arm still
+    (:data:`ARM_STILL_RAD`); empty when the recording has no joint angles."""
+    from bubble_rt.io.recordings import open_recording
+
+    rec = open_recording(path)
+    rows = getattr(rec, "rows", None)
+    if not rows:
+        return []
+    q = np.array([np.asarray(r[2], dtype=np.float64) for r in rows[: len(rec)]])
+    step = np.linalg.norm(np.diff(q, axis=0), axis=1)
+    before = np.concatenate([[0.0], step])
+    after = np.concatenate([step, [0.0]])
+    return [int(i) for i in np.flatnonzero((before <= ARM_STILL_RAD) & (after <= ARM_STILL_RAD))]
+
+
 def sim_frames(
     n: int = 12,
     effects: dict[str, dict[str, float]] | None = None,
@@ -636,6 +658,7 @@ def main() -> None:  # pragma: no cover - a report, run by hand (docs/sim-noise.
     eff = None if a.effects is None else json.loads(a.effects)
     frames, cam = real_frames(a.real, range(a.frames))
     real = measure(frames, cam, flow=not a.no_flow)
+    still = [i for i in arm_still(a.real) if i < a.frames]
     sims = {}
     views = (
         ("sim, Punyo view", punyo_pose(), PUNYO_BUBBLE.texture),
@@ -645,6 +668,12 @@ def main() -> None:  # pragma: no cover - a report, run by hand (docs/sim-noise.
         f, c = sim_frames(a.frames, effects=eff, camera_pose=pose, seed=a.seed, texture=texture)
         sims[name] = measure(f, c, flow=not a.no_flow)
     print(table(real, sims))
+    if not a.no_flow and len(still) >= 2:
+        st = flow_stats(real_frames(a.real, still)[0], cam)
+        print(
+            f"\nreal, frames {still[0]}-{still[-1]} (the arm still): flow at textured nodes, "
+            f"less each frame's mean, {st['flow_textured_detrended_px']:.3f} px"
+        )
 
 
 if __name__ == "__main__":  # pragma: no cover
