@@ -142,6 +142,62 @@ def estimate(data: dict[str, Any], config: EstimatorConfig | None = None) -> dic
     return out
 
 
+def _barycentric(mesh: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's containing triangle of ``mesh`` (footprint x, y; -1 outside) and its
+    barycentric coordinates there (P x 3)."""
+    X = np.asarray(mesh.vertices)[:, :2]
+    T = np.asarray(mesh.triangles)
+    a, b, c = X[T[:, 0]], X[T[:, 1]], X[T[:, 2]]
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    tri = np.full(len(points), -1)
+    lam = np.zeros((len(points), 3))
+    for k, p in enumerate(points[:, :2]):
+        l1 = ((p[0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (p[1] - a[:, 1])) / det
+        l2 = ((b[:, 0] - a[:, 0]) * (p[1] - a[:, 1]) - (p[0] - a[:, 0]) * (b[:, 1] - a[:, 1])) / det
+        inside = np.flatnonzero((l1 >= -1e-9) & (l2 >= -1e-9) & (l1 + l2 <= 1 + 1e-9))
+        if inside.size:
+            t = inside[0]
+            tri[k], lam[k] = t, (1 - l1[t] - l2[t], l1[t], l2[t])
+    return tri, lam
+
+
+def restriction(data: dict[str, Any], config: EstimatorConfig | None = None) -> str:
+    """How far each coarse mesh's nodal normal forces are from the finest mesh's, restricted to
+    the coarse hat functions (each fine node's force shared among the corners of the coarse
+    triangle holding it, by its barycentric coordinates): per mesh, the median over frames of
+    sum |f - f_restricted| / sum |f_restricted| over the coarse nodes carrying at least 5 % of
+    the load (docs/mesh-convergence.md, "What the coarse meshes' forces can say")."""
+    from bubble_rt.sensor import PROFILES
+
+    config = config or EstimatorConfig(ambient_pa=PROFILES[data["profile"]].ambient_pa)
+
+    def normal_forces(m: str, i: int) -> tuple[Any, np.ndarray]:
+        d = data["per_mesh"][m]
+        mesh, p, (U, dp) = d["mesh"][i], d["pressure_pa"][i], d["frames"][i]
+        est = ForceEstimator(mesh, config, SimpleNamespace(pressure_pa=p))
+        e = est.estimate(U, dp)
+        return mesh, -np.einsum("ij,ij->i", est.model.normals, e.node_forces)
+
+    n = len(data["per_mesh"][MESHES[-1]]["frames"])
+    fine = [normal_forces(MESHES[-1], i) for i in range(n)]
+    out = []
+    for m in MESHES[:-1]:
+        rel = []
+        for i in range(n):
+            mesh, f = normal_forces(m, i)
+            fmesh, ff = fine[i]
+            tri, lam = _barycentric(mesh, np.asarray(fmesh.vertices))
+            g = np.zeros(len(f))
+            ok = tri >= 0
+            np.add.at(
+                g, np.asarray(mesh.triangles)[tri[ok]].ravel(), (lam[ok] * ff[ok, None]).ravel()
+            )
+            big = np.abs(g) >= 0.05 * np.abs(g).sum()
+            rel.append(np.abs(f - g)[big].sum() / max(np.abs(g)[big].sum(), 1e-12))
+        out.append(f"{int(m)}: {np.median(rel):.2f} [{np.min(rel):.2f}-{np.max(rel):.2f}]")
+    return "coarse forces against the finest, restricted: " + ", ".join(out)
+
+
 def table(name: str, data: dict[str, Any], res: dict[str, Any]) -> str:
     """Markdown table: per mesh, median |f| / truth, median |f| and area relative to finest."""
     finest = res[MESHES[-1]]
@@ -182,6 +238,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8, help="frames per simulated trajectory")
     ap.add_argument("--min-force", type=float, default=0.5, help="sim frames kept (N)")
     ap.add_argument("--cache", default=None, help="pickle of the tracked frames (reused)")
+    ap.add_argument(
+        "--restriction",
+        action="store_true",
+        help="also compare each coarse mesh's nodal forces with the finest mesh's, restricted",
+    )
     args = ap.parse_args()
     cache: dict[str, Any] = {}
     if args.cache and os.path.exists(args.cache):
@@ -202,7 +263,10 @@ def main() -> None:
             if args.cache:
                 with open(args.cache, "wb") as fh:
                     pickle.dump(cache, fh)
-        print(table(name, cache[name], estimate(cache[name])), "\n", flush=True)
+        print(table(name, cache[name], estimate(cache[name])), flush=True)
+        if args.restriction:
+            print(restriction(cache[name]), flush=True)
+        print(flush=True)
 
 
 if __name__ == "__main__":
