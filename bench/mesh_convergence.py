@@ -173,11 +173,14 @@ def restriction(data: dict[str, Any], config: EstimatorConfig | None = None) -> 
     from bubble_rt.sensor import PROFILES
 
     config = config or EstimatorConfig(ambient_pa=PROFILES[data["profile"]].ambient_pa)
+    built: dict[int, ForceEstimator] = {}  # one per mesh, as estimate() does
 
     def normal_forces(m: str, i: int) -> tuple[Any, np.ndarray]:
         d = data["per_mesh"][m]
         mesh, p, (U, dp) = d["mesh"][i], d["pressure_pa"][i], d["frames"][i]
-        est = ForceEstimator(mesh, config, SimpleNamespace(pressure_pa=p))
+        if id(mesh) not in built:
+            built[id(mesh)] = ForceEstimator(mesh, config, SimpleNamespace(pressure_pa=p))
+        est = built[id(mesh)]
         e = est.estimate(U, dp)
         return mesh, -np.einsum("ij,ij->i", est.model.normals, e.node_forces)
 

@@ -65,6 +65,17 @@ def dome_depth(camera: Camera, g: MeshGeometry | None = None, offset: float = 0.
     return t.reshape(camera.height, camera.width).astype(np.float32)
 
 
+def centre_dent(
+    camera: Camera, depth: NDArray, depth_m: float = 3e-3, sigma_px: float = 25.0
+) -> NDArray[np.float32]:
+    """``depth`` (H x W m) pushed towards the camera by a Gaussian dent of ``depth_m`` (m) and
+    ``sigma_px`` (pixels) at the principal point; unread pixels (0) stay unread."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    r2 = (u - camera.cx) ** 2 + (v - camera.cy) ** 2
+    dent = depth - depth_m * np.exp(-r2 / (2 * sigma_px**2))
+    return np.where(depth > 0, dent, 0).astype(np.float32)
+
+
 def blob_mask(h: int, w: int, fraction: float, seed: int = 1) -> NDArray[np.bool_]:
     """True on about ``fraction`` of the pixels, in smooth blobs."""
     rng = np.random.default_rng(seed)

@@ -12,7 +12,7 @@ from bubble_rt.cli import main
 from bubble_rt.commands.estimate import parse_frames
 from bubble_rt.frames import Frame
 from bubble_rt.io.recordings import write_png_recording
-from synth_rgbd import dome_depth, texture, warp
+from synth_rgbd import centre_dent, dome_depth, texture, warp
 
 
 def test_parse_frames_ranges_and_lists():
@@ -182,9 +182,7 @@ def test_estimate_takes_an_mcap_recordings_own_reference_by_default(tmp_path):
     cam = Camera.d405()
     depth = dome_depth(cam)
     img = texture(cam.height, cam.width)
-    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
-    r2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
-    dent = np.where(depth > 0, depth - 3e-3 * np.exp(-r2 / (2 * 25.0**2)), 0).astype(np.float32)
+    dent = centre_dent(cam, depth)
     untouched = Frame(img, depth, 1e5, wrench=np.zeros(6))
     pressed = Frame(img, dent, 1e5 + 300.0, wrench=np.zeros(6))
     rec = write_mcap(

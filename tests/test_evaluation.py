@@ -380,14 +380,12 @@ def test_recording_eval_takes_an_mcap_recordings_own_reference_and_its_wrench_bi
     from bubble_rt.eval import evaluate_recording, recording_table
     from bubble_rt.frames import Frame
     from sim_recordings import write_mcap
-    from synth_rgbd import dome_depth, texture
+    from synth_rgbd import centre_dent, dome_depth, texture
 
     cam = Camera.d405()
     depth = dome_depth(cam)
     img = texture(cam.height, cam.width)
-    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
-    r2 = (u - cam.cx) ** 2 + (v - cam.cy) ** 2
-    dent = np.where(depth > 0, depth - 3e-3 * np.exp(-r2 / (2 * 25.0**2)), 0).astype(np.float32)
+    dent = centre_dent(cam, depth)
     bias = np.array([0.4, -0.3, 0.2, 0.0, 0.0, 0.0])
     press = np.array([0.0, 0.0, 2.0, 0.0, 0.0, 0.0])
     untouched = Frame(img, depth, 1e5, wrench=bias)
