@@ -244,10 +244,17 @@ def table(name: str, data: dict[str, Any], res: dict[str, Any]) -> str:
 
 def eval_patches(seed: int, workers: int) -> dict[str, dict[tuple, float]]:
     """Per mesh: each single-patch frame of 1 N and more of ``bubble-rt eval --seed seed``
-    (4 trajectories x 20 frames per indenter, image path) -> its patch area over the truth's."""
+    (its default 400 frames, image path) -> its patch area over the truth's."""
     out: dict[str, dict[tuple, float]] = {}
     for m in MESHES:
-        tasks = ev.make_tasks(ev.GEOMETRIES, 4, 20, mesh=m, estimators=("fem",), seed_base=seed)
+        tasks = ev.make_tasks(
+            ev.GEOMETRIES,
+            ev.DEFAULT_TRAJECTORIES,
+            ev.DEFAULT_FRAMES,
+            mesh=m,
+            estimators=("fem",),
+            seed_base=seed,
+        )
         results, _ = ev.run_eval(tasks, workers=workers, progress=False)
         out[m] = {
             (r.geometry, r.trajectory, r.frame): r.patch_area_ratio[0]

@@ -100,7 +100,7 @@ def _run_simulated(args: argparse.Namespace, ev: Any, overrides: dict, estimator
         # one light and one heavy touch per indenter (the dataset alternates them)
         traj, frames = 2, ev.QUICK_FRAMES
     else:
-        traj, frames = 4, 20
+        traj, frames = ev.DEFAULT_TRAJECTORIES, ev.DEFAULT_FRAMES
     traj = args.trajectories or traj
     frames = args.frames or frames
     geoms = [g.strip() for g in args.geometries.split(",") if g.strip()]

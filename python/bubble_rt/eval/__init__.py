@@ -34,6 +34,8 @@ from bubble_rt.eval.report import (
 )
 from bubble_rt.eval.tasks import (
     CALIB_SEED_BASE,
+    DEFAULT_FRAMES,
+    DEFAULT_TRAJECTORIES,
     EVAL_SEED_BASE,
     QUICK_FRAMES,
     EvalTask,
@@ -62,6 +64,8 @@ __all__ = [
     "FrameMetrics",
     "GEOMETRIES",
     "LIGHT_TOUCH_RANGE_N",
+    "DEFAULT_FRAMES",
+    "DEFAULT_TRAJECTORIES",
     "QUICK_FRAMES",
     "SUMMARY_KEYS",
     "SimTrajectory",

@@ -344,6 +344,9 @@ def run_eval(
 
 
 QUICK_FRAMES = 8
+#: the default evaluation: trajectories per indenter and frames per trajectory (400 frames)
+DEFAULT_TRAJECTORIES = 4
+DEFAULT_FRAMES = 20
 
 
 # ---------------------------------------------------------------------------------- recordings
