@@ -33,9 +33,10 @@ towards +z). Scene conventions:
   its support, not contact) whose force exceeds ``min_arrow_n`` (0.01 N), drawn as the force
   acting on the membrane: the tip at the node, the arrow along the force, its length
   ``arrow_scale`` x |f| (default 0.05 m per N, i.e. 5 mm per 0.1 N).
-* contact: every contact node as a yellow 2 mm sphere; each contact patch (connected contact
-  nodes) a text at its centroid, ``patch k: |F| N``, and its outline (yellow lines: the edges
-  between patch nodes that fewer than two of the patch's triangles share).
+* contact: every contact node as a yellow 2 mm sphere; each contact patch (the contact nodes
+  of one load, as published) a text at its centroid, ``patch k: |F| N``, and its outline
+  (yellow lines: the edges between patch nodes that fewer than two of the patch's triangles
+  share).
 * wrench (frames with a net torque): the net force as a blue arrow on its line of action (the
   wrench's central axis, ``F x tau / |F|^2 + s F``), its tip at the axis point nearest the
   strongest patch's centroid (else nearest the origin), ``arrow_scale`` long per newton; the
