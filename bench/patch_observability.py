@@ -58,8 +58,9 @@ def disc_load(model: MembraneModel, radius: float, force: float = 1.0) -> tuple[
 
 
 def main() -> None:
-    inside = {n: np.hypot(*Mesh.generate(n).vertices[:, :2].T) for n in NODES}
-    mesh = Mesh.generate(NODES[-1])
+    meshes = {n: Mesh.generate(n) for n in NODES}
+    inside = {n: np.hypot(*m.vertices[:, :2].T) for n, m in meshes.items()}  # axis distance
+    mesh = meshes[NODES[-1]]
     r = np.hypot(mesh.vertices[:, 0], mesh.vertices[:, 1])
     apex = int(np.argmin(r))
     free = np.repeat(mesh.interior, 3)
